@@ -1,0 +1,42 @@
+# make demo | make test | make bench   (each creates .venv if missing)
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+# The CPU build of PyTorch for the optional `learn` extra (the `complete` stage). Override for CUDA.
+TORCH_SPEC ?= torch==2.13.0
+SEQ ?= demo
+
+.PHONY: demo test bench lint clean-runs
+
+$(VENV)/bin/python:
+	$(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --upgrade pip
+
+# one stamp per install flavour, redone when pyproject.toml changes
+$(VENV)/.stamp-run: pyproject.toml | $(VENV)/bin/python
+	$(PIP) install -q "$(TORCH_SPEC)"
+	$(PIP) install -q -e ".[learn]"
+	touch $@
+
+$(VENV)/.stamp-dev: pyproject.toml | $(VENV)/bin/python
+	$(PIP) install -q "$(TORCH_SPEC)"
+	$(PIP) install -q -e ".[dev,learn,distributed]"
+	touch $@ $(VENV)/.stamp-run
+
+demo: $(VENV)/.stamp-run
+	$(VENV)/bin/pipeline run all --seq $(SEQ)
+	$(VENV)/bin/pipeline status --seq $(SEQ)
+
+lint: $(VENV)/.stamp-dev
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
+
+test: lint
+	$(PY) -m pytest -q
+
+bench: $(VENV)/.stamp-dev
+	$(PY) -m benchmarks
+
+clean-runs:
+	rm -rf runs

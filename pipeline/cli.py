@@ -1,0 +1,220 @@
+"""The ``pipeline`` command line (typer + rich). Exit codes: 0 success, 2 user error, 1 bug."""
+
+from __future__ import annotations
+
+import os
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import click
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from pipeline.config import describe_params, load_workflow, parse_set
+from pipeline.errors import UserError
+from pipeline.paths import default_runs_dir
+from pipeline.registry import load_stages
+from pipeline.runner import Runner, StageOutcome
+from pipeline.sequences import SequenceInfo, expand_sequences, load_registry, source_sequence
+from pipeline.store import RunStore
+
+app = typer.Typer(
+    name="pipeline",
+    help="Radar SLAM (RICH-SLAM) and radar mapping (RMap) as cached stages over ColoRadar-format logs.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+console = Console(stderr=True)
+out = Console()
+
+SeqOpt = Annotated[str, typer.Option("--seq", "-s", help="sequence name, list (a,b) or glob ('coloradar_*')")]
+SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override a parameter: STAGE.PARAM=VALUE")]
+RunsOpt = Annotated[Path | None, typer.Option("--runs-dir", help="run store (default ./runs or $RADAR_PIPELINE_RUNS)")]
+WorkflowOpt = Annotated[str, typer.Option("--workflow", "-w", help="workflow in workflows/ (or a .toml path)")]
+
+
+def _sequences(seq: str | None, source: Path | None, dataset: str) -> list[SequenceInfo]:
+    if source is not None:
+        return [source_sequence(source, seq, dataset)]
+    if not seq:
+        raise UserError("--seq is required (see `pipeline sequences`), or pass --source PATH")
+    return expand_sequences(seq, load_registry())
+
+
+def _print_outcomes(seq: str, outcomes: list[StageOutcome]) -> None:
+    table = Table(title=f"{seq}: stages", title_justify="left")
+    table.add_column("stage")
+    table.add_column("result")
+    table.add_column("seconds", justify="right")
+    table.add_column("note")
+    styles = {"ran": "green", "cached": "dim", "skipped": "yellow", "failed": "red"}
+    for o in outcomes:
+        table.add_row(o.stage, f"[{styles.get(o.action, '')}]{o.action}[/]", f"{o.seconds:.1f}", o.reason)
+    console.print(table)
+
+
+@app.command()
+def run(
+    stages: Annotated[list[str], typer.Argument(help="stages to bring up to date, or 'all'")],
+    seq: Annotated[str | None, typer.Option("--seq", "-s", help="sequence name, list (a,b) or glob")] = None,
+    set_: SetOpt = None,
+    force: Annotated[bool, typer.Option("--force", help="rerun the named stages even when cached")] = False,
+    runs_dir: RunsOpt = None,
+    source: Annotated[Path | None, typer.Option("--source", help="a bag, MCAP or extracted folder to run on")] = None,
+    dataset: Annotated[str, typer.Option("--dataset", help="dataset profile for --source")] = "coloradar",
+    workflow: WorkflowOpt = "default",
+) -> None:
+    """Run stages (and any missing or stale upstream stages); cached stages are skipped."""
+    registry = load_stages()
+    overrides = parse_set(set_ or [], registry)
+    wf = load_workflow(workflow)
+    runs = runs_dir or default_runs_dir()
+    for info in _sequences(seq, source, dataset):
+        runner = Runner(info, runs, registry, wf, overrides, console)
+        outcomes = runner.run(stages, force=stages if force else ())
+        _print_outcomes(info.name, outcomes)
+
+
+@app.command()
+def status(
+    seq: SeqOpt,
+    set_: SetOpt = None,
+    runs_dir: RunsOpt = None,
+    workflow: WorkflowOpt = "default",
+) -> None:
+    """Per stage: done / stale (why) / missing / unavailable, with timings."""
+    registry = load_stages()
+    overrides = parse_set(set_ or [], registry)
+    wf = load_workflow(workflow)
+    for info in expand_sequences(seq, load_registry()):
+        runner = Runner(info, runs_dir or default_runs_dir(), registry, wf, overrides, console)
+        table = Table(title=f"{info.name} ({runner.store.seq_dir})", title_justify="left")
+        for col in ("stage", "state", "seconds", "finished", "why"):
+            table.add_column(col, justify="right" if col == "seconds" else "left")
+        colors = {"done": "green", "stale": "yellow", "missing": "red", "unavailable": "dim"}
+        for st in runner.status():
+            table.add_row(st.stage, f"[{colors[st.state]}]{st.state}[/]",
+                          f"{st.seconds:.1f}" if st.seconds is not None else "",
+                          st.finished_at or "", st.reason)
+        out.print(table)
+
+
+@app.command()
+def sequences() -> None:
+    """Registered sequences, where their data is expected, and whether it is present."""
+    table = Table(title="sequences (data/sequences.toml)", title_justify="left")
+    for col in ("name", "kind", "data", "present", "description"):
+        table.add_column(col)
+    for info in load_registry().values():
+        found = info.locate()
+        expected = info.expected_locations()
+        where = str(found or (expected[0] if expected else "$COLORADAR_ROOT/" + (info.run or "")))
+        if info.kind == "simulated":
+            present = "[green]yes[/]" if found else "[dim]generated on first use[/]"
+        else:
+            present = "[green]yes[/]" if found else "[red]no[/]"
+        table.add_row(info.name, info.kind, where, present, info.description or (info.run or ""))
+    out.print(table)
+
+
+@app.command()
+def params(stage: Annotated[str | None, typer.Argument(help="a stage name (default: all)")] = None,
+           workflow: WorkflowOpt = "default") -> None:
+    """List stage parameters, their types, defaults and the workflow's values."""
+    registry = load_stages()
+    wf = load_workflow(workflow)
+    names = [stage] if stage else list(registry)
+    for name in names:
+        if name not in registry:
+            from pipeline.config import did_you_mean
+
+            raise UserError(f"unknown stage '{name}'{did_you_mean(name, registry)}")
+        table = Table(title=f"{name}: {registry[name].description}", title_justify="left")
+        for col in ("parameter", "type", "default", f"workflow {wf.name}", "description"):
+            table.add_column(col)
+        for pname, typ, default, desc in describe_params(registry[name]):
+            wval = wf.params.get(name, {}).get(pname, "")
+            table.add_row(f"{name}.{pname}", typ, repr(default), repr(wval) if wval != "" else "", desc)
+        out.print(table)
+
+
+@app.command()
+def view(
+    seq: SeqOpt,
+    stages: Annotated[list[str] | None, typer.Argument(help="stages to open (default: all present)")] = None,
+    runs_dir: RunsOpt = None,
+) -> None:
+    """Open the run's .rrd files in the Rerun viewer (prints the command when headless)."""
+    store = RunStore(runs_dir or default_runs_dir(), seq)
+    names = stages or [p.name for p in sorted(store.seq_dir.glob("*")) if p.is_dir() and not p.name.startswith(".")]
+    files = [store.stage_dir(s) / f"{s}.rrd" for s in names]
+    files = [f for f in files if f.exists()]
+    if not files:
+        raise UserError(f"no .rrd recordings for '{seq}' in {store.seq_dir}; run `pipeline run all --seq {seq}` first")
+    cmd = [sys.executable, "-m", "rerun", *map(str, files)]
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) or sys.platform == "win32":
+        out.print("headless: open the recordings with\n  " + shlex.join(["rerun", *map(str, files)]))
+        return
+    subprocess.Popen(cmd)
+
+
+@app.command()
+def export(
+    seq: SeqOpt,
+    fmt: Annotated[str, typer.Option("--format", "-f", help="tum | ply | mcap")],
+    out_dir: Annotated[Path | None, typer.Option("--out", help="output folder (default runs/<seq>/export)")] = None,
+    runs_dir: RunsOpt = None,
+) -> None:
+    """Export trajectories (TUM, evo-compatible), maps (PLY) or results (MCAP with Foxglove schemas)."""
+    from pipeline.export import export as do_export
+
+    store = RunStore(runs_dir or default_runs_dir(), seq)
+    written = do_export(store, fmt, out_dir or store.seq_dir / "export")
+    for p in written:
+        out.print(str(p))
+
+
+@app.command()
+def simulate(
+    world: Annotated[str, typer.Option("--world", help="a world in data/worlds/")],
+    out_path: Annotated[Path, typer.Option("--out", help="output .bag file or folder")],
+    duration: Annotated[float, typer.Option("--duration", help="seconds")] = 60.0,
+    seed: Annotated[int, typer.Option("--seed")] = 0,
+    fmt: Annotated[str, typer.Option("--format", help="bag | folder")] = "bag",
+) -> None:
+    """Write a ColoRadar-format log (ROS1 bag or extracted folder) simulated in a built-in world."""
+    try:
+        from simulator import simulate_to
+    except ImportError as exc:
+        raise UserError("the simulator is not available in this installation") from exc
+    path = simulate_to(world=world, out=out_path, duration=duration, seed=seed, fmt=fmt, console=console)
+    out.print(str(path))
+
+
+def main() -> None:
+    """Console entry point with the exit-code contract."""
+    try:
+        app(standalone_mode=False)
+    except UserError as exc:
+        console.print(f"[bold red]error:[/] {exc}", soft_wrap=True, highlight=False)
+        sys.exit(2)
+    except click.exceptions.Abort:
+        console.print("[red]aborted[/]")
+        sys.exit(130)
+    except click.exceptions.ClickException as exc:
+        exc.show()
+        sys.exit(2)
+    except click.exceptions.Exit as exc:
+        sys.exit(exc.exit_code)
+    except KeyboardInterrupt:
+        console.print("[red]interrupted[/]: finished stages are kept, the running one left its previous result")
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

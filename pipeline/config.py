@@ -1,0 +1,140 @@
+"""Workflows (``workflows/*.toml``) and parameter overrides (``--set stage.param=value``).
+
+Precedence, lowest first: the stage's parameter model defaults, the workflow's tables (and the
+workflows it includes), the sequence's ``params`` in ``data/sequences.toml``, then ``--set``.
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomllib
+from pydantic import ValidationError
+
+from pipeline.errors import UserError
+from pipeline.paths import workflows_dir
+from pipeline.stage import Stage, StageParams
+
+Overrides = dict[str, dict[str, Any]]
+
+
+def did_you_mean(name: str, options: Iterable[str]) -> str:
+    close = difflib.get_close_matches(name, list(options), n=1, cutoff=0.5)
+    return f"; did you mean '{close[0]}'?" if close else ""
+
+
+@dataclass
+class Workflow:
+    """A named list of stages with parameter tables."""
+
+    name: str
+    stages: list[str]
+    params: Overrides = field(default_factory=dict)
+    description: str = ""
+    sweep: dict[str, list[Any]] = field(default_factory=dict)
+    path: Path | None = None
+
+
+def _load_toml(path: Path) -> dict[str, Any]:
+    try:
+        with path.open("rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{path}: invalid TOML ({exc}); fix the file") from exc
+
+
+def merge_overrides(*layers: Mapping[str, Mapping[str, Any]]) -> Overrides:
+    out: Overrides = {}
+    for layer in layers:
+        for stage, values in layer.items():
+            out.setdefault(stage, {}).update(values)
+    return out
+
+
+def load_workflow(name_or_path: str, root: Path | None = None, _seen: tuple[str, ...] = ()) -> Workflow:
+    """Load ``workflows/<name>.toml`` (or a path), resolving ``include``."""
+    root = root or workflows_dir()
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        path = root / f"{name_or_path}.toml"
+    if not path.exists():
+        known = sorted(p.stem for p in root.glob("*.toml"))
+        raise UserError(
+            f"workflow '{name_or_path}' not found ({path}){did_you_mean(str(name_or_path), known)} "
+            f"(known: {', '.join(known)})"
+        )
+    if path.stem in _seen:
+        raise UserError(f"{path}: include cycle through {' -> '.join(_seen)}")
+    doc = _load_toml(path)
+    meta = doc.pop("workflow", {})
+    sweep = doc.pop("sweep", {})
+    params: Overrides = {}
+    for inc in meta.get("include", []):
+        params = merge_overrides(params, load_workflow(inc, root, (*_seen, path.stem)).params)
+    for stage, table in doc.items():
+        if not isinstance(table, dict):
+            raise UserError(f"{path}: top-level key '{stage}' must be a table of stage parameters")
+    params = merge_overrides(params, doc)
+    stages = list(meta.get("stages", []))
+    return Workflow(path.stem, stages, params, meta.get("description", ""), dict(sweep), path)
+
+
+def parse_value(text: str) -> Any:
+    """A TOML literal (``5``, ``0.25``, ``true``, ``[1, 2]``, ``"x"``) or else the bare string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def parse_set(items: Iterable[str], registry: Mapping[str, Stage]) -> Overrides:
+    """Parse ``stage.param=value`` items; unknown stages or parameters get a did-you-mean error."""
+    out: Overrides = {}
+    for item in items:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise UserError(f"--set '{item}': expected STAGE.PARAM=VALUE, e.g. --set slam.n_particles=100")
+        lhs, raw = item.split("=", 1)
+        stage, param = lhs.strip().split(".", 1)
+        if stage not in registry:
+            raise UserError(f"--set {lhs}: unknown stage '{stage}'{did_you_mean(stage, registry)}")
+        check_param_names(stage, {param: raw}, registry, source="--set")
+        out.setdefault(stage, {})[param] = parse_value(raw.strip())
+    return out
+
+
+def check_param_names(stage: str, values: Mapping[str, Any], registry: Mapping[str, Stage], source: str) -> None:
+    fields = registry[stage].Params.model_fields
+    for param in values:
+        if param not in fields:
+            qualified = [f"{stage}.{f}" for f in fields]
+            hint = did_you_mean(f"{stage}.{param}", qualified)
+            listing = "" if hint else f" (parameters: {', '.join(fields) or 'none'})"
+            raise UserError(f"{source}: unknown parameter '{stage}.{param}'{hint}{listing}")
+
+
+def build_params(stage: Stage, layers: Sequence[tuple[str, Mapping[str, Any]]]) -> StageParams:
+    """Validate the merged parameter layers into the stage's model; errors name the parameter."""
+    merged: dict[str, Any] = {}
+    for _source, values in layers:
+        merged.update(values)
+    try:
+        return stage.Params.model_validate(merged)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"])
+        source = next((s for s, v in reversed(layers) if err["loc"] and err["loc"][0] in v), "defaults")
+        value = merged.get(str(err["loc"][0])) if err["loc"] else None
+        raise UserError(f"{source}: {stage.name}.{loc}={value!r}: {err['msg']}") from None
+
+
+def describe_params(stage: Stage) -> list[tuple[str, str, Any, str]]:
+    """(name, type, default, description) for ``pipeline params``."""
+    rows = []
+    for name, f in stage.Params.model_fields.items():
+        ann = getattr(f.annotation, "__name__", str(f.annotation))
+        rows.append((name, ann, f.default, f.description or ""))
+    return rows

@@ -1,0 +1,24 @@
+"""Discovery of the pipeline's stages (``stages/<name>/stage.py`` exporting ``STAGE``)."""
+
+from __future__ import annotations
+
+import importlib
+from functools import cache
+
+from pipeline.stage import Stage
+
+#: The stages of DESIGN.md in dependency order.
+STAGE_NAMES = ("ingest", "filter", "odometry", "slam", "voxel", "patches", "complete", "evaluate", "plan")
+
+
+@cache
+def load_stages() -> dict[str, Stage]:
+    """Import every stage module and return ``{name: stage}`` in pipeline order."""
+    out: dict[str, Stage] = {}
+    for name in STAGE_NAMES:
+        module = importlib.import_module(f"stages.{name}.stage")
+        stage: Stage = module.STAGE
+        if stage.name != name:
+            raise RuntimeError(f"stages/{name}/stage.py exports a stage named {stage.name!r}")
+        out[name] = stage
+    return out

@@ -1,0 +1,281 @@
+"""Resolving the stage DAG, computing keys, skipping cached stages and running the rest."""
+
+from __future__ import annotations
+
+import graphlib
+import json
+import platform
+import shutil
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from pipeline import __version__
+from pipeline.config import Overrides, Workflow, build_params, check_param_names
+from pipeline.errors import UserError
+from pipeline.sequences import SequenceInfo
+from pipeline.stage import Stage, StageContext, StageParams
+from pipeline.store import RunStore, compute_key
+
+
+@dataclass
+class StageStatus:
+    stage: str
+    state: str  # done | stale | missing | unavailable
+    reason: str = ""
+    key: str | None = None
+    seconds: float | None = None
+    finished_at: str | None = None
+
+
+@dataclass
+class StageOutcome:
+    stage: str
+    action: str  # ran | cached | skipped | failed
+    seconds: float = 0.0
+    reason: str = ""
+
+
+class Runner:
+    """Runs stages of one sequence against one run store."""
+
+    def __init__(
+        self,
+        seq: SequenceInfo,
+        runs_dir: Path,
+        registry: Mapping[str, Stage],
+        workflow: Workflow,
+        overrides: Overrides | None = None,
+        console: Console | None = None,
+    ) -> None:
+        self.seq = seq
+        self.registry = dict(registry)
+        self.workflow = workflow
+        self.overrides = overrides or {}
+        self.console = console or Console(stderr=True)
+        self.store = RunStore(Path(runs_dir), seq.name)
+        self._params: dict[str, StageParams] = {}
+        self._keys: dict[str, str] = {}
+        self._check_names()
+
+    def _check_names(self) -> None:
+        for source, layer in (
+            (f"workflow {self.workflow.path or self.workflow.name}", self.workflow.params),
+            (f"sequence '{self.seq.name}' params", self.seq.params),
+            ("--set", self.overrides),
+        ):
+            for stage, values in layer.items():
+                if stage not in self.registry:
+                    from pipeline.config import did_you_mean
+
+                    raise UserError(f"{source}: unknown stage '{stage}'{did_you_mean(stage, self.registry)}")
+                check_param_names(stage, values, self.registry, source)
+        for stage in self.workflow.stages:
+            if stage not in self.registry:
+                raise UserError(f"workflow '{self.workflow.name}': unknown stage '{stage}'")
+
+    # -- parameters and keys ------------------------------------------------------------------------------
+    def params(self, name: str) -> StageParams:
+        if name not in self._params:
+            layers = [
+                (f"workflow '{self.workflow.name}'", self.workflow.params.get(name, {})),
+                (f"sequence '{self.seq.name}'", self.seq.params.get(name, {})),
+                ("--set", self.overrides.get(name, {})),
+            ]
+            self._params[name] = build_params(self.registry[name], layers)
+        return self._params[name]
+
+    def inputs_of(self, name: str) -> list[str]:
+        stage = self.registry[name]
+        required = list(stage.input_stages(self.params(name)))
+        optional = [s for s in stage.optional_inputs if s in self.registry and self.available(s)]
+        return required + [s for s in optional if s not in required]
+
+    def available(self, name: str) -> bool:
+        return self.registry[name].unavailable_reason() is None
+
+    def key(self, name: str, _stack: tuple[str, ...] = ()) -> str:
+        if name in _stack:
+            raise RuntimeError(f"stage dependency cycle: {' -> '.join((*_stack, name))}")
+        if name not in self._keys:
+            stage = self.registry[name]
+            inputs = {i: self.key(i, (*_stack, name)) for i in self.inputs_of(name)}
+            self._keys[name] = compute_key(
+                name,
+                self.params(name).model_dump(mode="json"),
+                stage.code_version(),
+                inputs,
+                stage.key_material(self.seq, self.params(name)),
+            )
+        return self._keys[name]
+
+    def closure(self, targets: Iterable[str]) -> list[str]:
+        """Targets and all their upstream stages, in dependency order."""
+        graph: dict[str, set[str]] = {}
+        todo = list(targets)
+        while todo:
+            name = todo.pop()
+            if name in graph:
+                continue
+            if name not in self.registry:
+                from pipeline.config import did_you_mean
+
+                raise UserError(f"unknown stage '{name}'{did_you_mean(name, self.registry)}")
+            deps = set(self.inputs_of(name))
+            graph[name] = deps
+            todo.extend(deps)
+        order = list(self.registry)
+        ts = graphlib.TopologicalSorter(graph)
+        ts.prepare()
+        out: list[str] = []
+        while ts.is_active():
+            ready = sorted(ts.get_ready(), key=order.index)
+            out.extend(ready)
+            ts.done(*ready)
+        return out
+
+    # -- status -----------------------------------------------------------------------------------------------
+    def stage_status(self, name: str) -> StageStatus:
+        reason = self.registry[name].unavailable_reason()
+        if reason:
+            return StageStatus(name, "unavailable", reason)
+        for dep in self.inputs_of(name):
+            dep_reason = self.registry[dep].unavailable_reason()
+            if dep_reason:
+                return StageStatus(name, "unavailable", f"input '{dep}' {dep_reason}")
+        key = self.key(name)
+        manifest = self.store.read_manifest(name)
+        if manifest is None:
+            return StageStatus(name, "missing", "never run" if not self.store.stage_dir(name).exists()
+                               else "incomplete result", key)
+        timing = manifest.get("timings", {})
+        if manifest.get("key") == key:
+            return StageStatus(name, "done", "", key, timing.get("seconds"), timing.get("finished_at"))
+        return StageStatus(name, "stale", self._why_stale(name, manifest), key,
+                           timing.get("seconds"), timing.get("finished_at"))
+
+    def _why_stale(self, name: str, manifest: dict[str, Any]) -> str:
+        reasons = []
+        now = self.params(name).model_dump(mode="json")
+        before = manifest.get("params", {})
+        changed = [f"{k} {before.get(k)!r}->{now.get(k)!r}" for k in sorted(set(now) | set(before))
+                   if json.dumps(now.get(k), sort_keys=True) != json.dumps(before.get(k), sort_keys=True)]
+        if changed:
+            reasons.append("params changed: " + ", ".join(changed))
+        if manifest.get("code_version") != self.registry[name].code_version():
+            reasons.append("code changed")
+        old_inputs = manifest.get("inputs", {})
+        for dep in self.inputs_of(name):
+            if old_inputs.get(dep) != self.key(dep):
+                reasons.append(f"input '{dep}' changed")
+        for dep in set(old_inputs) - set(self.inputs_of(name)):
+            reasons.append(f"input '{dep}' no longer used")
+        if manifest.get("extra") != self.registry[name].key_material(self.seq, self.params(name)):
+            reasons.append("source data changed")
+        return "; ".join(reasons) or "key changed"
+
+    def status(self, stages: Iterable[str] | None = None) -> list[StageStatus]:
+        return [self.stage_status(n) for n in (stages or self.registry)]
+
+    # -- running ----------------------------------------------------------------------------------------------
+    def resolve_targets(self, targets: Iterable[str]) -> tuple[list[str], list[StageOutcome]]:
+        """Expand ``all`` into the workflow's available stages; refuse named stages that cannot run."""
+        targets = list(targets)
+        skipped: list[StageOutcome] = []
+        out: list[str] = []
+        for t in targets:
+            if t == "all":
+                for s in self.workflow.stages:
+                    reason = self.registry[s].unavailable_reason()
+                    blocked = [d for d in self.registry[s].input_stages(self.params(s)) if not self.available(d)]
+                    if reason or blocked:
+                        skipped.append(StageOutcome(s, "skipped", reason=reason or f"input '{blocked[0]}' unavailable"))
+                    else:
+                        out.append(s)
+                continue
+            if t not in self.registry:
+                from pipeline.config import did_you_mean
+
+                raise UserError(f"unknown stage '{t}'{did_you_mean(t, [*self.registry, 'all'])}")
+            out.append(t)
+        for name in self.closure(out):
+            reason = self.registry[name].unavailable_reason()
+            if reason:
+                raise UserError(f"stage '{name}' cannot run: {reason}")
+        return out, skipped
+
+    def run(self, targets: Iterable[str], force: Iterable[str] = ()) -> list[StageOutcome]:
+        """Bring ``targets`` up to date: run missing or stale stages (and upstream), skip cached ones."""
+        wanted, outcomes = self.resolve_targets(targets)
+        force = set(force)
+        if "all" in force:
+            force = set(wanted)
+        plan = self.closure(wanted)
+        with self.store.lock():
+            for note in self.store.recover():
+                self.console.print(f"[yellow]note[/] {self.seq.name}: {note}")
+            for name in plan:
+                st = self.stage_status(name)
+                if st.state == "done" and name not in force:
+                    outcomes.append(StageOutcome(name, "cached", st.seconds or 0.0))
+                    self.console.print(f"[dim]{name:<9} cached[/]")
+                    continue
+                why = "forced" if name in force else (st.reason if st.state == "stale" else st.state)
+                self.console.print(f"[bold]{name:<9}[/] running ({why})")
+                seconds = self._execute(name)
+                outcomes.append(StageOutcome(name, "ran", seconds, why))
+                self.console.print(f"[green]{name:<9} done[/] in {seconds:.1f} s")
+        return outcomes
+
+    def _execute(self, name: str) -> float:
+        stage = self.registry[name]
+        params = self.params(name)
+        tmp = self.store.new_temp_dir(name)
+        ctx = StageContext(
+            stage=name,
+            seq=self.seq,
+            params=params,
+            out_dir=tmp,
+            input_dirs={i: self.store.stage_dir(i) for i in self.inputs_of(name)},
+            console=self.console,
+        )
+        started = datetime.now(timezone.utc)
+        t0 = time.perf_counter()
+        try:
+            stage.run(ctx)
+            ctx.close()
+            missing = [o for o in stage.outputs if not (tmp / o).exists()]
+            if missing:
+                raise RuntimeError(f"stage '{name}' finished without writing {', '.join(missing)}")
+            seconds = time.perf_counter() - t0
+            manifest = {
+                "stage": name,
+                "seq": self.seq.name,
+                "key": self.key(name),
+                "params": params.model_dump(mode="json"),
+                "code_version": stage.code_version(),
+                "inputs": {i: self.key(i) for i in self.inputs_of(name)},
+                "extra": stage.key_material(self.seq, params),
+                "timings": {
+                    "started_at": started.isoformat(timespec="seconds"),
+                    "finished_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                    "seconds": round(seconds, 3),
+                },
+                "stats": ctx.stats,
+                "pipeline_version": __version__,
+                "python": platform.python_version(),
+                "workflow": self.workflow.name,
+            }
+            self.store.commit(name, tmp, manifest)
+            return seconds
+        except BaseException:
+            try:
+                ctx.close()
+            finally:
+                shutil.rmtree(tmp, ignore_errors=True)
+            raise

@@ -1,0 +1,166 @@
+"""The stage contract: what a stage declares and what it is handed when it runs.
+
+A stage is a small class in ``stages/<name>/stage.py`` that declares its name, upstream inputs, a typed
+parameter model, a code version and the artifacts it writes. Its ``run`` adapts artifacts to the pure
+algorithms beside it. The runner owns caching, temporary folders, manifests and locks.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import inspect
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar
+
+from pydantic import BaseModel, ConfigDict
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from pipeline.errors import UserError
+
+if TYPE_CHECKING:
+    from pipeline.recording import StageRecording
+    from pipeline.sequences import SequenceInfo
+
+
+class StageParams(BaseModel):
+    """Base of every stage's parameter model: unknown names are rejected, types are checked."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=True)
+
+
+class Stage(ABC):
+    """One cached step of the pipeline."""
+
+    name: ClassVar[str]
+    description: ClassVar[str] = ""
+    #: upstream stages whose artifacts this stage reads
+    inputs: ClassVar[tuple[str, ...]] = ()
+    #: upstream stages read when available (installed and implemented); part of the key when present
+    optional_inputs: ClassVar[tuple[str, ...]] = ()
+    Params: ClassVar[type[StageParams]] = StageParams
+    #: bump when the stage's outputs change meaning; the package source digest is added automatically
+    version: ClassVar[str] = "1"
+    #: artifact files the stage must write (the runner checks them)
+    outputs: ClassVar[tuple[str, ...]] = ()
+    #: importable modules the stage needs (an optional extra), with the extra's name for the message
+    requires: ClassVar[tuple[str, ...]] = ()
+    requires_extra: ClassVar[str] = ""
+    implemented: ClassVar[bool] = True
+
+    def input_stages(self, params: StageParams) -> tuple[str, ...]:
+        """Upstream stages for these parameters (override when a parameter picks an input)."""
+        return self.inputs
+
+    def key_material(self, seq: SequenceInfo, params: StageParams) -> dict[str, Any]:
+        """Extra values that enter the cache key (e.g. the fingerprint of a source bag)."""
+        return {}
+
+    def missing_requirements(self) -> list[str]:
+        return [m for m in self.requires if importlib.util.find_spec(m) is None]
+
+    def unavailable_reason(self) -> str | None:
+        if not self.implemented:
+            return "not implemented yet"
+        missing = self.missing_requirements()
+        if missing:
+            extra = f" (pip install 'radar-pipeline[{self.requires_extra}]')" if self.requires_extra else ""
+            return f"needs {', '.join(missing)}{extra}"
+        return None
+
+    def code_version(self) -> str:
+        """Declared version plus a digest of the stage package's source files."""
+        return f"{self.version}+{source_digest(type(self))}"
+
+    @abstractmethod
+    def run(self, ctx: StageContext) -> None:
+        """Read inputs from ``ctx``, compute, write artifacts into ``ctx.out_dir``."""
+
+
+def source_digest(cls: type) -> str:
+    """Short sha256 over the ``.py`` files of the package that defines ``cls``."""
+    module_file = inspect.getsourcefile(cls)
+    if module_file is None:
+        return "unknown"
+    folder = Path(module_file).parent
+    h = hashlib.sha256()
+    for f in sorted(folder.glob("*.py")):
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
+@dataclass
+class StageContext:
+    """Everything a running stage may touch."""
+
+    stage: str
+    seq: SequenceInfo
+    params: Any
+    out_dir: Path
+    input_dirs: dict[str, Path]
+    console: Console
+    #: values recorded in the manifest (counts of dropped points, warnings, measured numbers)
+    stats: dict[str, Any] = field(default_factory=dict)
+    _recording: StageRecording | None = None
+
+    def input(self, stage: str, filename: str) -> Path:
+        """Path of an upstream artifact; a clear error when it is absent."""
+        if stage not in self.input_dirs:
+            raise UserError(
+                f"stage '{self.stage}' read '{stage}/{filename}' but '{stage}' is not among its inputs"
+            )
+        path = self.input_dirs[stage] / filename
+        if not path.exists():
+            raise UserError(f"{path}: missing; run `pipeline run {stage} --seq {self.seq.name} --force`")
+        return path
+
+    def has_input(self, stage: str) -> bool:
+        return stage in self.input_dirs
+
+    def output(self, filename: str) -> Path:
+        return self.out_dir / filename
+
+    @property
+    def recording(self) -> StageRecording:
+        """The stage's Rerun recording (``<stage>.rrd`` in the output folder), opened on first use."""
+        if self._recording is None:
+            from pipeline.recording import StageRecording
+
+            self._recording = StageRecording(self.seq.name, self.out_dir / f"{self.stage}.rrd")
+        return self._recording
+
+    def close(self) -> None:
+        if self._recording is not None:
+            self._recording.close()
+            self._recording = None
+
+    def warn(self, message: str) -> None:
+        """Print a warning and keep it in the manifest."""
+        self.console.print(f"[yellow]warning[/] {self.stage}: {message}")
+        self.stats.setdefault("warnings", []).append(message)
+
+    @contextmanager
+    def progress(self, total: int | None, description: str) -> Iterator[Any]:
+        """A rich progress bar; yields ``advance(n=1)``."""
+        with Progress(
+            TextColumn(f"[bold blue]{self.stage}[/] {description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            TimeRemainingColumn(),
+            console=self.console,
+            transient=True,
+            disable=not self.console.is_terminal,
+        ) as prog:
+            task = prog.add_task(description, total=total)
+
+            def advance(n: int = 1) -> None:
+                prog.advance(task, n)
+
+            yield advance

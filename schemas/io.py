@@ -1,0 +1,148 @@
+"""Reading and writing artifacts with schema validation.
+
+Every reader goes through :func:`read_artifact`, which checks the schema name, version, required
+columns and their types, and fails with one line that names the file and what to do.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from schemas.artifacts import ARTIFACTS, ArtifactSchema
+
+META_NAME = b"radar_pipeline.schema"
+META_VERSION = b"radar_pipeline.schema_version"
+
+
+class SchemaError(ValueError):
+    """An artifact does not match its schema (a user-facing error: the message says how to fix it)."""
+
+
+def _schema(name: str | ArtifactSchema) -> ArtifactSchema:
+    if isinstance(name, ArtifactSchema):
+        return name
+    try:
+        return ARTIFACTS[name]
+    except KeyError:
+        raise KeyError(f"unknown artifact schema {name!r}; known: {', '.join(sorted(ARTIFACTS))}") from None
+
+
+def _fix_hint(art: ArtifactSchema) -> str:
+    return f"rebuild it with `pipeline run {art.stage} --seq <seq> --force`"
+
+
+def validate_table(table: pa.Table, art: ArtifactSchema, where: str) -> None:
+    """Check required columns and types; raise :class:`SchemaError` naming ``where`` on a mismatch."""
+    for field in art.schema:
+        if field.name not in table.column_names:
+            raise SchemaError(
+                f"{where}: missing column '{field.name}' required by schema '{art.name}' v{art.version} "
+                f"(has: {', '.join(table.column_names) or 'no columns'}); {_fix_hint(art)}"
+            )
+        got = table.schema.field(field.name).type
+        if got != field.type:
+            raise SchemaError(
+                f"{where}: column '{field.name}' has type {got}, schema '{art.name}' v{art.version} expects "
+                f"{field.type}; {_fix_hint(art)}"
+            )
+        if table.column(field.name).null_count:
+            raise SchemaError(f"{where}: column '{field.name}' holds nulls; {_fix_hint(art)}")
+
+
+def to_table(columns: Mapping[str, Any] | pa.Table, art: ArtifactSchema) -> pa.Table:
+    """Build a table from numpy columns, casting required columns to the schema's types."""
+    if isinstance(columns, pa.Table):
+        table = columns
+    else:
+        arrays: dict[str, pa.Array] = {}
+        for name, values in columns.items():
+            if art.schema.get_field_index(name) >= 0:
+                typ = art.schema.field(name).type
+                arrays[name] = pa.array(values, type=typ) if not isinstance(values, pa.Array) else values
+            else:
+                arrays[name] = values if isinstance(values, pa.Array) else pa.array(np.asarray(values))
+        table = pa.table(arrays)
+    ordered = [f.name for f in art.schema if f.name in table.column_names]
+    rest = [n for n in table.column_names if n not in ordered]
+    return table.select(ordered + rest)
+
+
+def write_artifact(
+    columns: Mapping[str, Any] | pa.Table,
+    path: str | Path,
+    schema: str | ArtifactSchema,
+    metadata: Mapping[str, str] | None = None,
+) -> Path:
+    """Validate and write an artifact atomically (temporary file, then rename)."""
+    art = _schema(schema)
+    path = Path(path)
+    table = to_table(columns, art)
+    validate_table(table, art, str(path))
+    meta = dict(table.schema.metadata or {})
+    meta[META_NAME] = art.name.encode()
+    meta[META_VERSION] = str(art.version).encode()
+    for k, v in (metadata or {}).items():
+        meta[k.encode()] = str(v).encode()
+    table = table.replace_schema_metadata(meta)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        float_cols = [f.name for f in table.schema if pa.types.is_floating(f.type)]
+        pq.write_table(
+            table,
+            tmp,
+            compression="zstd",
+            use_dictionary=[f.name for f in table.schema if not pa.types.is_floating(f.type)],
+            column_encoding=dict.fromkeys(float_cols, "BYTE_STREAM_SPLIT") or None,
+            row_group_size=1 << 20,
+        )
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def read_artifact(
+    path: str | Path,
+    schema: str | ArtifactSchema,
+    columns: Sequence[str] | None = None,
+    filters: Any = None,
+) -> pa.Table:
+    """Read and validate an artifact. Raises :class:`SchemaError` with a one-line fix on any mismatch."""
+    art = _schema(schema)
+    path = Path(path)
+    if not path.exists():
+        raise SchemaError(f"{path}: artifact '{art.name}' not found; run `pipeline run {art.stage} --seq <seq>`")
+    try:
+        file_schema = pq.read_schema(path)
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise SchemaError(f"{path}: not a readable Parquet file ({exc}); {_fix_hint(art)}") from exc
+    meta = file_schema.metadata or {}
+    name = meta.get(META_NAME, b"").decode()
+    version = meta.get(META_VERSION, b"").decode()
+    if name != art.name:
+        raise SchemaError(
+            f"{path}: holds schema '{name or 'unknown'}', expected '{art.name}'; {_fix_hint(art)}"
+        )
+    if version != str(art.version):
+        raise SchemaError(
+            f"{path}: written with schema '{art.name}' v{version}, this version reads v{art.version}; "
+            f"{_fix_hint(art)}"
+        )
+    try:
+        table = pq.read_table(path, columns=list(columns) if columns else None, filters=filters)
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise SchemaError(f"{path}: unreadable ({exc}); {_fix_hint(art)}") from exc
+    if columns:
+        sub = pa.schema([f for f in art.schema if f.name in columns])
+        validate_table(table, ArtifactSchema(art.name, art.stage, art.filename, art.version, sub), str(path))
+    else:
+        validate_table(table, art, str(path))
+    return table

@@ -1,0 +1,1 @@
+"""The `filter` stage: Doppler ego-velocity and multi-frame radar point filtering (RICH-SLAM Sec. IV-B)."""

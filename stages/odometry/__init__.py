@@ -1,0 +1,1 @@
+"""The `odometry` stage: radar-inertial odometry (EKF-RIO) at radar scan times."""

@@ -1,0 +1,1 @@
+"""The `voxel` stage: radar and lidar OctoMap-style voxel maps (RMap Sec. III-A)."""
