@@ -9,10 +9,10 @@ import sys
 from pathlib import Path
 from typing import Annotated
 
-import click
 import typer
 from rich.console import Console
 from rich.table import Table
+from typer.exceptions import TyperException
 
 from pipeline.config import describe_params, load_workflow, parse_set
 from pipeline.errors import UserError
@@ -203,14 +203,18 @@ def main() -> None:
     except UserError as exc:
         console.print(f"[bold red]error:[/] {exc}", soft_wrap=True, highlight=False)
         sys.exit(2)
-    except click.exceptions.Abort:
+    except typer.Abort:
         console.print("[red]aborted[/]")
         sys.exit(130)
-    except click.exceptions.ClickException as exc:
-        exc.show()
-        sys.exit(2)
-    except click.exceptions.Exit as exc:
+    except typer.Exit as exc:
         sys.exit(exc.exit_code)
+    except TyperException as exc:  # usage errors (unknown command or option, bad value)
+        show = getattr(exc, "show", None)
+        if callable(show):
+            show()
+        else:
+            console.print(f"[bold red]error:[/] {exc}")
+        sys.exit(int(getattr(exc, "exit_code", 2) or 2))
     except KeyboardInterrupt:
         console.print("[red]interrupted[/]: finished stages are kept, the running one left its previous result")
         sys.exit(130)

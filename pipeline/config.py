@@ -110,8 +110,8 @@ def check_param_names(stage: str, values: Mapping[str, Any], registry: Mapping[s
     fields = registry[stage].Params.model_fields
     for param in values:
         if param not in fields:
-            qualified = [f"{stage}.{f}" for f in fields]
-            hint = did_you_mean(f"{stage}.{param}", qualified)
+            close = difflib.get_close_matches(param, list(fields), n=1, cutoff=0.6)
+            hint = f"; did you mean '{stage}.{close[0]}'?" if close else ""
             listing = "" if hint else f" (parameters: {', '.join(fields) or 'none'})"
             raise UserError(f"{source}: unknown parameter '{stage}.{param}'{hint}{listing}")
 

@@ -14,6 +14,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -82,6 +83,7 @@ class Stage(ABC):
         """Read inputs from ``ctx``, compute, write artifacts into ``ctx.out_dir``."""
 
 
+@cache
 def source_digest(cls: type) -> str:
     """Short sha256 over the ``.py`` files of the package that defines ``cls``."""
     module_file = inspect.getsourcefile(cls)

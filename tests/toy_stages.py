@@ -1,0 +1,73 @@
+"""A toy two-stage workflow used to test the runner: `make_numbers` -> `square`."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+from pydantic import Field
+
+from pipeline.config import Workflow
+from pipeline.stage import Stage, StageContext, StageParams
+from schemas import write_artifact
+from schemas.artifacts import ArtifactSchema
+
+NUMBERS = ArtifactSchema("toy_numbers", "make_numbers", "numbers.parquet", 1,
+                         pa.schema([pa.field("i", pa.int32(), nullable=False),
+                                    pa.field("v", pa.float64(), nullable=False)]))
+
+
+class NumbersParams(StageParams):
+    count: int = Field(5, ge=1, description="how many numbers")
+    scale: float = Field(1.0, description="multiplier")
+
+
+class MakeNumbers(Stage):
+    name = "make_numbers"
+    Params = NumbersParams
+    outputs = ("numbers.parquet",)
+    calls = 0
+
+    def run(self, ctx: StageContext) -> None:
+        type(self).calls += 1
+        i = np.arange(ctx.params.count, dtype=np.int32)
+        write_artifact({"i": i, "v": i * ctx.params.scale}, ctx.output("numbers.parquet"), NUMBERS)
+        rec = ctx.recording
+        rec.points_over_time("world/radar/raw", scans=i, t_ns=i.astype(np.int64) * 100_000_000,
+                             positions=np.column_stack([i, i, i]).astype(np.float32), lengths=np.ones(len(i)))
+        rec.scalars("metrics/value", i, None, i * ctx.params.scale)
+
+
+class SquareParams(StageParams):
+    offset: float = Field(0.0, description="added after squaring")
+    fail_midway: bool = Field(False, description="raise after writing a partial file (for tests)")
+
+
+class Square(Stage):
+    name = "square"
+    inputs = ("make_numbers",)
+    Params = SquareParams
+    outputs = ("squares.parquet",)
+    calls = 0
+
+    def run(self, ctx: StageContext) -> None:
+        from schemas import read_artifact
+
+        type(self).calls += 1
+        t = read_artifact(ctx.input("make_numbers", "numbers.parquet"), NUMBERS)
+        v = t["v"].to_numpy() ** 2 + ctx.params.offset
+        out = ctx.output("squares.parquet")
+        if ctx.params.fail_midway:
+            out.write_bytes(b"partial")
+            raise RuntimeError("boom midway")
+        write_artifact({"i": t["i"].to_numpy(), "v": v}, out, NUMBERS)
+        ctx.stats["n"] = len(v)
+
+
+def registry() -> dict[str, Stage]:
+    MakeNumbers.calls = 0
+    Square.calls = 0
+    return {"make_numbers": MakeNumbers(), "square": Square()}
+
+
+def workflow(**params: dict[str, object]) -> Workflow:
+    return Workflow("toy", ["make_numbers", "square"], {k: dict(v) for k, v in params.items()})
