@@ -7,7 +7,7 @@ import shlex
 import subprocess
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.console import Console
@@ -21,6 +21,9 @@ from pipeline.registry import load_stages
 from pipeline.runner import Runner, StageOutcome
 from pipeline.sequences import SequenceInfo, expand_sequences, load_registry, source_sequence
 from pipeline.store import RunStore
+
+if TYPE_CHECKING:
+    from pipeline.executors import TaskResult
 
 app = typer.Typer(
     name="pipeline",
@@ -68,16 +71,73 @@ def run(
     source: Annotated[Path | None, typer.Option("--source", help="a bag, MCAP or extracted folder to run on")] = None,
     dataset: Annotated[str, typer.Option("--dataset", help="dataset profile for --source")] = "coloradar",
     workflow: WorkflowOpt = "default",
+    executor: Annotated[str | None, typer.Option(
+        "--executor", help="local (process pool, default for several sequences) or ray")] = None,
+    workers: Annotated[int | None, typer.Option("--workers", help="parallel sequences (default: CPU count)")] = None,
+    ray_address: Annotated[str | None, typer.Option(
+        "--ray-address", help="Ray cluster address (default: start a local instance)")] = None,
 ) -> None:
     """Run stages (and any missing or stale upstream stages); cached stages are skipped."""
     registry = load_stages()
     overrides = parse_set(set_ or [], registry)
     wf = load_workflow(workflow)
     runs = runs_dir or default_runs_dir()
-    for info in _sequences(seq, source, dataset):
-        runner = Runner(info, runs, registry, wf, overrides, console)
-        outcomes = runner.run(stages, force=stages if force else ())
-        _print_outcomes(info.name, outcomes)
+    seqs = _sequences(seq, source, dataset)
+    forced = tuple(stages) if force else ()
+    if len(seqs) == 1 and executor is None:
+        runner = Runner(seqs[0], runs, registry, wf, overrides, console)
+        _print_outcomes(seqs[0].name, runner.run(stages, force=forced))
+        return
+    from pipeline.executors import RunTask, make_executor, run_all
+
+    tasks = [RunTask(s, str(runs), tuple(stages), forced, overrides, str(wf.path or wf.name)) for s in seqs]
+    ex = make_executor(executor or "local", workers, ray_address)
+    console.print(f"running {len(tasks)} sequence(s) on the {ex.name} executor")
+
+    def on_done(res: TaskResult) -> None:
+        mark = "[green]ok[/]" if res.ok else "[red]failed[/]"
+        console.print(f"  {res.name}: {mark} in {res.seconds:.1f} s" + ("" if res.ok else f": {_first_line(res)}"))
+
+    results = run_all(tasks, ex, on_done)
+    _print_results(results, runs)
+    if any(r.error_kind == "bug" for r in results):
+        raise typer.Exit(1)
+    if any(not r.ok for r in results):
+        raise typer.Exit(2)
+
+
+def _first_line(res: TaskResult) -> str:
+    return (res.error or "").splitlines()[0] if res.error else ""
+
+
+def _print_results(results: list[TaskResult], runs: Path) -> None:
+    table = Table(title="sequences", title_justify="left")
+    for col in ("sequence", "result", "ran", "cached/reused", "seconds", "error"):
+        table.add_column(col)
+    for r in results:
+        ran = sum(o.action == "ran" for o in r.outcomes)
+        cached = sum(o.action in ("cached", "reused") for o in r.outcomes)
+        table.add_row(r.name, "[green]ok[/]" if r.ok else "[red]failed[/]", str(ran), str(cached),
+                      f"{r.seconds:.1f}", _first_line(r))
+    console.print(table)
+    for r in results:
+        if r.error_kind == "bug":
+            console.print(f"[red]{r.name}[/]: {r.error}")
+    gather = _comparison_table()
+    if gather is not None:
+        cmp = gather(runs, [r.seq for r in results if r.ok])
+        if cmp is not None:
+            out.print(cmp)
+
+
+def _comparison_table() -> Any:
+    """``pipeline.report.comparison_table`` when the evaluation reports are available."""
+    import importlib
+
+    try:
+        return getattr(importlib.import_module("pipeline.report"), "comparison_table", None)
+    except ImportError:
+        return None
 
 
 @app.command()

@@ -36,7 +36,7 @@ class StageStatus:
 @dataclass
 class StageOutcome:
     stage: str
-    action: str  # ran | cached | skipped | failed
+    action: str  # ran | cached | reused | skipped | failed
     seconds: float = 0.0
     reason: str = ""
 
@@ -52,6 +52,7 @@ class Runner:
         workflow: Workflow,
         overrides: Overrides | None = None,
         console: Console | None = None,
+        reuse_from: Iterable[Path] = (),
     ) -> None:
         self.seq = seq
         self.registry = dict(registry)
@@ -59,6 +60,8 @@ class Runner:
         self.overrides = overrides or {}
         self.console = console or Console(stderr=True)
         self.store = RunStore(Path(runs_dir), seq.name)
+        #: other run stores whose finished stages with the same key are reused instead of recomputed
+        self.reuse = [RunStore(Path(d), seq.name) for d in reuse_from if Path(d).resolve() != Path(runs_dir).resolve()]
         self._params: dict[str, StageParams] = {}
         self._keys: dict[str, str] = {}
         self._check_names()
@@ -225,12 +228,26 @@ class Runner:
                     outcomes.append(StageOutcome(name, "cached", st.seconds or 0.0))
                     self.console.print(f"[dim]{name:<9} cached[/]")
                     continue
+                if name not in force and self._reuse(name):
+                    outcomes.append(StageOutcome(name, "reused", 0.0))
+                    self.console.print(f"[dim]{name:<9} reused[/]")
+                    continue
                 why = "forced" if name in force else (st.reason if st.state == "stale" else st.state)
                 self.console.print(f"[bold]{name:<9}[/] running ({why})")
                 seconds = self._execute(name)
                 outcomes.append(StageOutcome(name, "ran", seconds, why))
                 self.console.print(f"[green]{name:<9} done[/] in {seconds:.1f} s")
         return outcomes
+
+    def _reuse(self, name: str) -> bool:
+        """Link in a finished result with the same key from another run store, if one exists."""
+        key = self.key(name)
+        for other in self.reuse:
+            manifest = other.read_manifest(name)
+            if manifest is not None and manifest.get("key") == key:
+                self.store.import_from(other, name)
+                return True
+        return False
 
     def _execute(self, name: str) -> float:
         stage = self.registry[name]

@@ -93,6 +93,10 @@ class RunStore:
         }
         manifest["complete"] = True
         write_json_atomic(tmp / MANIFEST, manifest)
+        return self.swap_in(stage, tmp)
+
+    def swap_in(self, stage: str, tmp: Path) -> Path:
+        """Replace ``runs/<seq>/<stage>`` by the finished folder ``tmp`` (two renames)."""
         final = self.stage_dir(stage)
         old = None
         if final.exists():
@@ -102,6 +106,24 @@ class RunStore:
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
         return final
+
+    def import_from(self, other: RunStore, stage: str) -> Path:
+        """Bring a finished stage folder of another store in with hard links (copies across devices)."""
+        tmp = self.new_temp_dir(stage)
+        tmp.rmdir()
+
+        def link(src: str, dst: str) -> None:
+            try:
+                os.link(src, dst)
+            except OSError:
+                shutil.copy2(src, dst)
+
+        try:
+            shutil.copytree(other.stage_dir(stage), tmp, copy_function=link)
+            return self.swap_in(stage, tmp)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
 
     def recover(self) -> list[str]:
         """Repair interrupted commits and remove temporary folders. Call with the lock held."""

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import time
+from pathlib import Path
+
 import numpy as np
 import pyarrow as pa
 from pydantic import Field
@@ -19,6 +24,7 @@ NUMBERS = ArtifactSchema("toy_numbers", "make_numbers", "numbers.parquet", 1,
 class NumbersParams(StageParams):
     count: int = Field(5, ge=1, description="how many numbers")
     scale: float = Field(1.0, description="multiplier")
+    sleep_s: float = Field(0.0, ge=0, description="pause before writing (to overlap concurrent runs in tests)")
 
 
 class MakeNumbers(Stage):
@@ -29,6 +35,7 @@ class MakeNumbers(Stage):
 
     def run(self, ctx: StageContext) -> None:
         type(self).calls += 1
+        time.sleep(ctx.params.sleep_s)
         i = np.arange(ctx.params.count, dtype=np.int32)
         write_artifact({"i": i, "v": i * ctx.params.scale}, ctx.output("numbers.parquet"), NUMBERS)
         rec = ctx.recording
@@ -40,6 +47,7 @@ class MakeNumbers(Stage):
 class SquareParams(StageParams):
     offset: float = Field(0.0, description="added after squaring")
     fail_midway: bool = Field(False, description="raise after writing a partial file (for tests)")
+    kill_midway: bool = Field(False, description="SIGKILL the process after writing a partial file (for tests)")
 
 
 class Square(Stage):
@@ -56,6 +64,9 @@ class Square(Stage):
         t = read_artifact(ctx.input("make_numbers", "numbers.parquet"), NUMBERS)
         v = t["v"].to_numpy() ** 2 + ctx.params.offset
         out = ctx.output("squares.parquet")
+        if ctx.params.kill_midway:
+            out.write_bytes(b"partial")
+            os.kill(os.getpid(), signal.SIGKILL)
         if ctx.params.fail_midway:
             out.write_bytes(b"partial")
             raise RuntimeError("boom midway")
@@ -71,3 +82,15 @@ def registry() -> dict[str, Stage]:
 
 def workflow(**params: dict[str, object]) -> Workflow:
     return Workflow("toy", ["make_numbers", "square"], {k: dict(v) for k, v in params.items()})
+
+
+TOY_WORKFLOW = """
+[workflow]
+stages = ["make_numbers", "square"]
+"""
+
+
+def workflow_file(folder: Path) -> Path:
+    path = folder / "toy.toml"
+    path.write_text(TOY_WORKFLOW)
+    return path
