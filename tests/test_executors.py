@@ -63,8 +63,8 @@ def test_killed_worker_leaves_previous_result(tmp_path: Path) -> None:
     first = run_all(tasks(tmp_path, runs, [{}, {}]), LocalExecutor(2))
     assert all(r.ok for r in first)
     good = (runs / "seq0" / "square" / "squares.parquet").read_bytes()
-    res = run_all(tasks(tmp_path, runs, [{"square": {"offset": 1.0, "kill_midway": True}}, {"square": {"offset": 1.0}}]),
-                  LocalExecutor(2))
+    points = [{"square": {"offset": 1.0, "kill_midway": True}}, {"square": {"offset": 1.0}}]
+    res = run_all(tasks(tmp_path, runs, points), LocalExecutor(2))
     assert not res[0].ok and res[0].error == "worker died (signal 9)"
     assert res[1].ok
     assert (runs / "seq0" / "square" / "squares.parquet").read_bytes() == good
@@ -78,7 +78,8 @@ def test_concurrent_runs_of_one_sequence_are_refused(tmp_path: Path) -> None:
     wf = str(workflow_file(tmp_path))
     seq = SequenceInfo(name="same", kind="source", source=tmp_path)
     slow = {"make_numbers": {"sleep_s": 3.0}}
-    ts = [RunTask(seq, str(tmp_path / "runs"), ("all",), (), slow, wf, registry=REGISTRY, label=f"t{i}") for i in range(2)]
+    ts = [RunTask(seq, str(tmp_path / "runs"), ("all",), (), slow, wf, registry=REGISTRY, label=f"t{i}")
+          for i in range(2)]
     res = run_all(ts, LocalExecutor(2))
     assert sorted(r.ok for r in res) == [False, True]
     failed = next(r for r in res if not r.ok)
