@@ -55,7 +55,7 @@ def export_tum(store: RunStore, out: Path) -> list[Path]:
     for name, t_ns, pose in trajectories(store):
         path = out / f"{name}.tum"
         data = np.column_stack([t_ns / 1e9, pose])
-        np.savetxt(path, data, fmt=["%.9f"] + ["%.6f"] * 7)
+        np.savetxt(path, data, fmt=["%.9f"] + ["%.6f"] * 3 + ["%.9f"] * 4)
         written.append(path)
     return written
 

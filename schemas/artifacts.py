@@ -132,8 +132,11 @@ ARTIFACTS: dict[str, ArtifactSchema] = {
 
 def artifact_for_file(filename: str) -> ArtifactSchema | None:
     """The schema whose file name matches (``trajectory_<method>.parquet`` maps to ``trajectory``)."""
+    exact = [a for a in ARTIFACTS.values() if a.filename == filename]
+    if exact:
+        return exact[0]
     for art in ARTIFACTS.values():
         stem = art.filename.removesuffix(".parquet")
-        if filename == art.filename or (filename.startswith(stem + "_") and filename.endswith(".parquet")):
+        if filename.startswith(stem + "_") and filename.endswith(".parquet"):
             return art
     return None
