@@ -146,3 +146,89 @@ def read_artifact(
     else:
         validate_table(table, art, str(path))
     return table
+
+
+class ArtifactWriter:
+    """Stream an artifact to Parquet in row-group batches (bounded memory), then rename it into place.
+
+    ``extra`` declares columns beyond the schema's required ones (their types must be fixed up front).
+    Rows are buffered until ``batch_rows`` and written as one row group; the schema metadata matches
+    :func:`write_artifact`, so :func:`read_artifact` accepts the file.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        schema: str | ArtifactSchema,
+        extra: Sequence[pa.Field] = (),
+        metadata: Mapping[str, str] | None = None,
+        batch_rows: int = 1 << 20,
+    ) -> None:
+        self.art = _schema(schema)
+        self.path = Path(path)
+        meta = {META_NAME: self.art.name.encode(), META_VERSION: str(self.art.version).encode()}
+        for k, v in (metadata or {}).items():
+            meta[k.encode()] = str(v).encode()
+        self.schema = pa.schema([*self.art.schema, *extra], metadata=meta)
+        self.batch_rows = int(batch_rows)
+        self.rows = 0
+        self._buf: list[pa.Table] = []
+        self._buffered = 0
+        self._tmp = self.path.with_name(f".{self.path.name}.{uuid.uuid4().hex[:8]}.tmp")
+        float_cols = [f.name for f in self.schema if pa.types.is_floating(f.type)]
+        self._writer: pq.ParquetWriter | None = pq.ParquetWriter(
+            self._tmp,
+            self.schema,
+            compression="zstd",
+            use_dictionary=[f.name for f in self.schema if not pa.types.is_floating(f.type)],
+            column_encoding=dict.fromkeys(float_cols, "BYTE_STREAM_SPLIT") or None,
+        )
+
+    def write(self, columns: Mapping[str, Any]) -> None:
+        """Append rows given as equal-length columns (cast to the declared types)."""
+        arrays = [pa.array(np.asarray(columns[f.name]), type=f.type) for f in self.schema]
+        table = pa.Table.from_arrays(arrays, schema=self.schema)
+        if table.num_rows == 0:
+            return
+        self._buf.append(table)
+        self._buffered += table.num_rows
+        if self._buffered >= self.batch_rows:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self._buf or self._writer is None:
+            return
+        table = pa.concat_tables(self._buf)
+        self._buf, self._buffered = [], 0
+        validate_table(table, self.art, str(self.path))
+        self._writer.write_table(table, row_group_size=max(self.batch_rows, table.num_rows))
+        self.rows += table.num_rows
+
+    def close(self) -> Path:
+        """Write the remaining rows and move the file into place."""
+        if self._writer is None:
+            return self.path
+        try:
+            self.flush()
+            self._writer.close()
+            self._writer = None
+            os.replace(self._tmp, self.path)
+        finally:
+            self._tmp.unlink(missing_ok=True)
+        return self.path
+
+    def abort(self) -> None:
+        """Discard the partial file."""
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> ArtifactWriter:
+        return self
+
+    def __exit__(self, exc_type: Any, *_: Any) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()

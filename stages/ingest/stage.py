@@ -1,13 +1,60 @@
-"""`ingest` stage: read a ColoRadar-format log (bag, MCAP, extracted folder) into Parquet artifacts."""
+"""`ingest` stage: read a ColoRadar-format log (bag, MCAP, extracted folder) into Parquet artifacts.
+
+Streams the log once: radar and lidar clouds and IMU samples go to Parquet in row-group batches (memory
+stays bounded on long bags), ground truth and an optional odometry topic are buffered (small) and
+written at the end together with ``calibration.json`` (base <- radar / lidar / imu, 4x4). Topic names,
+field names and frames come from the dataset profile ``data/datasets/<dataset>.toml``.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import pyarrow as pa
+from pydantic import Field
+
 from pipeline.errors import UserError
+from pipeline.sequences import SequenceInfo, source_fingerprint
 from pipeline.stage import Stage, StageContext, StageParams
+from schemas.io import ArtifactWriter, write_artifact
+from stages.ingest.geometry import F64, interpolate_poses, lookup, matrices_to_poses, poses_to_matrices
+from stages.ingest.profile import DatasetProfile, load_profile, profiles_dir
+from stages.ingest.readers import Message, Source, open_source
+from stages.ingest.sink import LabelSidecar, ReorderBuffer, StreamStats, finite_mask, sort_poses
+
+SENSORS = ("radar", "lidar", "imu")
 
 
 class IngestParams(StageParams):
-    """Parameters of the `ingest` stage."""
+    """Parameters of the `ingest` stage (profile overrides and streaming knobs)."""
+
+    dataset: str = Field("", description="dataset profile in data/datasets/ ('' = the sequence's dataset)")
+    radar_topic: str = Field("", description="override the profile's radar PointCloud2 topic")
+    lidar_topic: str = Field("", description="override the profile's lidar PointCloud2 topic")
+    imu_topic: str = Field("", description="override the profile's sensor_msgs/Imu topic")
+    groundtruth_topic: str = Field("", description="override the profile's ground-truth pose topic")
+    odometry_topic: str = Field("", description="an odometry topic to keep as bag_odometry.parquet")
+    radar_doppler_field: str = Field("", description="PointCloud2 field holding the Doppler velocity")
+    radar_intensity_field: str = Field("", description="PointCloud2 field holding the radar intensity")
+    lidar_intensity_field: str = Field("", description="PointCloud2 field holding the lidar intensity")
+    doppler_sign: float | None = Field(None, description="override the profile's Doppler sign factor")
+    reorder_window: int = Field(16, ge=1, description="messages re-sorted by stamp per stream (out-of-order)")
+    batch_rows: int = Field(1_000_000, ge=1000, description="rows per Parquet row group (bounds memory)")
+    rerun_radar_every: int = Field(1, ge=1, description="log every n-th raw radar scan to Rerun")
+    rerun_lidar_every: int = Field(10, ge=1, description="log every n-th lidar scan to Rerun")
+    rerun_lidar_points: int = Field(2000, ge=1, description="random points kept per logged lidar scan")
+    rerun_flush_scans: int = Field(500, ge=1, description="scans buffered before a Rerun send_columns")
+    seed: int = Field(0, description="seed of the lidar downsampling for Rerun")
+
+
+def _file_digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.is_file() else "missing"
 
 
 class IngestStage(Stage):
@@ -15,11 +62,310 @@ class IngestStage(Stage):
     description = "read a ColoRadar-format log (bag, MCAP, extracted folder) into Parquet artifacts"
     inputs = ()
     Params = IngestParams
-    outputs = ('radar.parquet', 'imu.parquet', 'lidar.parquet', 'groundtruth.parquet', 'calibration.json')
-    implemented = False
+    version = "1"
+    outputs = ("radar.parquet", "imu.parquet", "lidar.parquet", "groundtruth.parquet", "calibration.json")
+
+    def key_material(self, seq: SequenceInfo, params: StageParams) -> dict[str, Any]:
+        assert isinstance(params, IngestParams)
+        dataset = params.dataset or seq.dataset
+        out: dict[str, Any] = {"profile": dataset, "profile_digest": _file_digest(profiles_dir() / f"{dataset}.toml")}
+        if seq.kind == "simulated":
+            out["simulated"] = {"world": seq.world, "duration": seq.duration, "seed": seq.seed, "format": seq.format}
+            return out
+        path = seq.locate()
+        if path is None:
+            out["source"] = {"missing": [str(p) for p in seq.expected_locations()]}
+            return out
+        out["source"] = source_fingerprint(path)
+        sidecar = LabelSidecar.find(path)
+        if sidecar is not None:
+            out["labels"] = source_fingerprint(sidecar.path)
+        return out
 
     def run(self, ctx: StageContext) -> None:
-        raise UserError("stage 'ingest' is not implemented yet")
+        p: IngestParams = ctx.params
+        profile = load_profile(p.dataset or ctx.seq.dataset)
+        path = ctx.seq.resolve_source()
+        topics = {s: getattr(p, f"{s}_topic") for s in ("radar", "lidar", "imu", "groundtruth", "odometry")}
+        fields = {"radar_doppler": p.radar_doppler_field, "radar_intensity": p.radar_intensity_field,
+                  "lidar_intensity": p.lidar_intensity_field}
+        src = open_source(path, profile, {k: v for k, v in topics.items() if v}, {k: v for k, v in fields.items() if v})
+        ctx.stats["source"] = {"path": str(path), "form": src.form, "profile": profile.name, "streams": src.streams}
+        for what in src.missing_optional:
+            ctx.warn(f"{path}: no {what}; its artifact will be empty")
+        _Ingest(ctx, p, profile, src, path).run()
+
+
+class _Ingest:
+    """One ingest run: the streaming loop and what it writes."""
+
+    def __init__(self, ctx: StageContext, p: IngestParams, profile: DatasetProfile, src: Source, path: Path) -> None:
+        self.ctx, self.p, self.profile, self.src, self.path = ctx, p, profile, src, path
+        self.sign = profile.radar.doppler_sign if p.doppler_sign is None else p.doppler_sign
+        self.labels = LabelSidecar.find(path)
+        self.stats = {s: StreamStats() for s in ("radar", "lidar", "imu", "groundtruth", "odometry")}
+        self.reorder = {s: ReorderBuffer(p.reorder_window) for s in ("radar", "lidar", "imu")}
+        self.scan = {"radar": 0, "lidar": 0}
+        self.frames: dict[str, str] = {}
+        self.poses: dict[str, tuple[list[int], list[F64], list[str]]] = {
+            "groundtruth": ([], [], []), "odometry": ([], [], [])}
+        self.scan_times: dict[str, list[int]] = {"radar": [], "lidar": []}
+        self.rng = np.random.default_rng(p.seed)
+        self.rr_buf: dict[str, list[Any]] = {"radar": [], "lidar": []}
+        self.imu_buf: list[tuple[int, F64]] = []
+        label_field = [pa.field("label", pa.int8(), nullable=False)]
+        self.writers = {
+            "radar": ArtifactWriter(ctx.output("radar.parquet"), "radar", extra=label_field, batch_rows=p.batch_rows),
+            "lidar": ArtifactWriter(ctx.output("lidar.parquet"), "lidar", batch_rows=p.batch_rows),
+            "imu": ArtifactWriter(ctx.output("imu.parquet"), "imu", batch_rows=p.batch_rows),
+        }
+
+    # -- main loop ------------------------------------------------------------------------------------------------
+    def run(self) -> None:
+        ctx = self.ctx
+        t0 = time.perf_counter()
+        total = sum(self.src.counts.values()) or None
+        try:
+            with ctx.progress(total, f"reading {self.path.name}") as advance:
+                for i, msg in enumerate(self.src.messages()):
+                    self._arrive(msg)
+                    if i % 256 == 255:
+                        advance(256)
+                for buf in self.reorder.values():
+                    for m in buf.flush():
+                        self._emit(m)
+            self._flush_imu()
+            for stream in ("radar", "lidar"):
+                self._flush_rerun(stream)
+            for w in self.writers.values():
+                w.close()
+        except BaseException:
+            for w in self.writers.values():
+                w.abort()
+            raise
+        seconds = time.perf_counter() - t0
+        gt = self._write_poses("groundtruth", ctx.output("groundtruth.parquet"))
+        if "odometry" in self.src.streams:
+            self._write_poses("odometry", ctx.output("bag_odometry.parquet"))
+        calib = self._calibration()
+        ctx.output("calibration.json").write_text(json.dumps(calib, indent=2) + "\n")
+        self._log_transforms(gt, calib)
+        self._report(seconds)
+
+    def _arrive(self, msg: Message) -> None:
+        st = self.stats[msg.stream]
+        st.messages += 1
+        st.record_time_used += int(msg.record_time)
+        if msg.frame and msg.stream not in self.frames:
+            self.frames[msg.stream] = msg.frame.lstrip("/")
+        if msg.stream in self.reorder:
+            for m in self.reorder[msg.stream].push(msg):
+                self._emit(m)
+        else:
+            t, v, child = self.poses[msg.stream]
+            assert msg.values is not None
+            t.append(msg.t_ns)
+            v.append(msg.values)
+            child.append(msg.child_frame.lstrip("/"))
+            if msg.frame and msg.stream + "_parent" not in self.frames:
+                self.frames[msg.stream + "_parent"] = msg.frame.lstrip("/")
+
+    def _emit(self, msg: Message) -> None:
+        st = self.stats[msg.stream]
+        st.first_t_ns = msg.t_ns if st.first_t_ns is None else st.first_t_ns
+        st.last_t_ns = msg.t_ns
+        if msg.stream == "imu":
+            assert msg.values is not None
+            if not np.isfinite(msg.values).all():
+                st.nonfinite_dropped += 1
+                return
+            st.points += 1
+            self.imu_buf.append((msg.t_ns, msg.values))
+            if len(self.imu_buf) >= 65536:
+                self._flush_imu()
+            return
+        assert msg.columns is not None
+        cols = msg.columns
+        n_all = len(cols["x"])
+        ok = finite_mask(cols)
+        n_bad = int(n_all - ok.sum())
+        if n_bad:
+            st.nonfinite_dropped += n_bad
+            cols = {k: v[ok] for k, v in cols.items()}
+        n = n_all - n_bad
+        scan = self.scan[msg.stream]
+        self.scan[msg.stream] += 1
+        self.scan_times[msg.stream].append(msg.t_ns)
+        out: dict[str, Any] = {"scan": np.full(n, scan, np.int32), "t_ns": np.full(n, msg.t_ns, np.int64), **cols}
+        if msg.stream == "radar":
+            out["doppler"] = cols["doppler"] * np.float32(self.sign)
+            if self.labels is not None:
+                lab = self.labels.labels_for(msg.t_ns, n_all)
+                out["label"] = lab[ok] if n_bad else lab
+            else:
+                out["label"] = np.full(n, -1, np.int8)
+        st.points += n
+        self.writers[msg.stream].write(out)
+        self._buffer_rerun(msg.stream, scan, msg.t_ns, cols)
+
+    def _flush_imu(self) -> None:
+        if not self.imu_buf:
+            return
+        t = np.fromiter((x[0] for x in self.imu_buf), np.int64, len(self.imu_buf))
+        v = np.stack([x[1] for x in self.imu_buf])
+        self.imu_buf = []
+        names = ("ax", "ay", "az", "gx", "gy", "gz")
+        self.writers["imu"].write({"t_ns": t, **{c: v[:, i] for i, c in enumerate(names)}})
+
+    # -- ground truth / odometry -----------------------------------------------------------------------------
+    def _write_poses(self, stream: str, out: Path) -> tuple[npt.NDArray[np.int64], F64]:
+        t_list, v_list, children = self.poses[stream]
+        t = np.asarray(t_list, dtype=np.int64)
+        v = np.stack(v_list) if v_list else np.zeros((0, 7))
+        t, v, backwards, dropped = sort_poses(t, v)
+        st = self.stats[stream]
+        st.backwards, st.out_of_order_dropped, st.points = backwards, dropped, len(t)
+        if len(t):
+            st.first_t_ns, st.last_t_ns = int(t[0]), int(t[-1])
+        child = next((c for c in children if c), "")
+        base = self._base_frame()
+        if len(t) and child and base and child != base:
+            # poses are of `child` in world: world <- base = (world <- child) (child <- base)
+            T = lookup(self.src.tf_edges, child, base)
+            if T is None:
+                self.ctx.warn(f"{stream}: poses are of frame '{child}', not the base '{base}', and no tf links "
+                              f"them; kept as they are")
+            else:
+                v = matrices_to_poses(poses_to_matrices(v) @ T)
+        if v.size:
+            v[:, 3:] *= np.where(v[:, 6:7] < 0, -1.0, 1.0)  # one hemisphere
+        cols = {"t_ns": t, **{c: v[:, i] for i, c in enumerate(("x", "y", "z", "qx", "qy", "qz", "qw"))}}
+        write_artifact(cols, out, "groundtruth", metadata={"frame_parent": self.frames.get(stream + "_parent", ""),
+                                                            "frame_child": base})
+        return t, v
+
+    # -- calibration -------------------------------------------------------------------------------------------
+    def _base_frame(self) -> str:
+        return self.profile.frames.base or self.frames.get("imu") or self.profile.frames.imu or \
+            self.frames.get("radar", "base")
+
+    def _calibration(self) -> dict[str, Any]:
+        base = self._base_frame()
+        out: dict[str, Any] = {"base_frame": base, "convention": "base_from_<sensor>: 4x4, p_base = T @ p_sensor"}
+        sources: dict[str, str] = {}
+        frames: dict[str, str] = {}
+        for sensor in SENSORS:
+            frame = self.frames.get(sensor) or getattr(self.profile.frames, sensor) or sensor
+            frames[sensor] = frame
+            T: F64 | None = None
+            if sensor in self.src.calibration:
+                T, how = self.src.calibration[sensor]
+                sources[sensor] = f"file {how}"
+            elif self.src.tf_edges:
+                T = lookup(self.src.tf_edges, base, frame)
+                sources[sensor] = "tf"
+            if T is None and frame == base:
+                T, sources[sensor] = np.eye(4), "identity (sensor frame is the base)"
+            if T is None:
+                T = getattr(self.profile.extrinsics, sensor).matrix()
+                sources[sensor] = f"profile '{self.profile.name}' default"
+                if sensor in self.src.streams and self.src.form != "folder":
+                    self.ctx.warn(f"no tf from '{base}' to '{frame}' in {self.path.name}; using the profile's "
+                                  f"default base<-{sensor} extrinsic")
+            out[f"base_from_{sensor}"] = np.round(T, 12).tolist()
+        out["frames"] = frames
+        out["sources"] = sources
+        self.ctx.stats["calibration"] = sources
+        return out
+
+    # -- Rerun -----------------------------------------------------------------------------------------------------
+    def _buffer_rerun(self, stream: str, scan: int, t_ns: int, cols: dict[str, Any]) -> None:
+        p = self.p
+        every = p.rerun_radar_every if stream == "radar" else p.rerun_lidar_every
+        if scan % every:
+            return
+        xyz = np.stack([cols["x"], cols["y"], cols["z"]], axis=1)
+        if stream == "lidar" and len(xyz) > p.rerun_lidar_points:
+            xyz = xyz[np.sort(self.rng.choice(len(xyz), p.rerun_lidar_points, replace=False))]
+        self.rr_buf[stream].append((scan, t_ns, xyz))
+        if len(self.rr_buf[stream]) >= p.rerun_flush_scans:
+            self._flush_rerun(stream)
+
+    def _flush_rerun(self, stream: str) -> None:
+        buf = self.rr_buf[stream]
+        if not buf:
+            return
+        self.rr_buf[stream] = []
+        entity = "world/radar/raw" if stream == "radar" else "world/lidar"
+        colour = (255, 140, 0) if stream == "radar" else (140, 140, 160)
+        xyz = np.concatenate([b[2] for b in buf])
+        self.ctx.recording.points_over_time(
+            entity, [b[0] for b in buf], [b[1] for b in buf], xyz, [len(b[2]) for b in buf],
+            colors=np.tile(np.asarray(colour, np.uint8), (len(xyz), 1)), radii=0.04 if stream == "radar" else 0.02)
+
+    def _log_transforms(self, gt: tuple[npt.NDArray[np.int64], F64], calib: dict[str, Any]) -> None:
+        """Ground truth as a path; sensor clouds placed in the world by ground truth (world <- sensor)."""
+        import rerun as rr
+
+        from pipeline.recording import time_columns
+
+        t, v = gt
+        rec = self.ctx.recording
+        if len(t) == 0:
+            return
+        # ground truth has its own clock: on the sensor_time timeline only (no scan index)
+        green = np.asarray((60, 200, 60), np.uint8)
+        path = rr.LineStrips3D([v[:, :3].astype(np.float32)], colors=[green])
+        rec.rec.log("world/groundtruth/path", path, static=True)
+        rec.rec.send_columns("world/groundtruth/pose", indexes=time_columns(None, t),
+                             columns=rr.Points3D.columns(positions=v[:, :3], colors=np.tile(green, (len(t), 1)),
+                                                         radii=np.full(len(t), 0.08, np.float32)).partition(
+                                 lengths=np.ones(len(t), np.int64)))
+        for stream, entity in (("radar", "world/radar/raw"), ("lidar", "world/lidar")):
+            every = self.p.rerun_radar_every if stream == "radar" else self.p.rerun_lidar_every
+            times = np.asarray(self.scan_times[stream], dtype=np.int64)
+            scans = np.arange(len(times))[::every]
+            times = times[::every]
+            if times.size == 0:
+                continue
+            T, _ = interpolate_poses(t, v, times)
+            T = T @ np.asarray(calib[f"base_from_{stream}"])
+            quat = matrices_to_poses(T)[:, 3:]
+            rec.rec.send_columns(entity, indexes=time_columns(scans, times),
+                                 columns=rr.Transform3D.columns(translation=T[:, :3, 3], quaternion=quat))
+
+    def _report(self, seconds: float) -> None:
+        ctx = self.ctx
+        for stream, buf in self.reorder.items():
+            st = self.stats[stream]
+            st.backwards, st.out_of_order_dropped = buf.backwards, buf.dropped
+        for stream, st in self.stats.items():
+            if st.backwards:
+                ctx.warn(f"{stream}: time went backwards {st.backwards} time(s) in {self.path.name}"
+                         + (f" (first at t={buf_first(self.reorder.get(stream))})" if stream in self.reorder else "")
+                         + f"; re-sorted, {st.out_of_order_dropped} message(s) older than already written ones dropped")
+            if st.nonfinite_dropped:
+                what = "samples" if stream == "imu" else "points"
+                ctx.warn(f"{stream}: dropped {st.nonfinite_dropped} {what} with NaN/inf values")
+            if st.record_time_used:
+                ctx.warn(f"{stream}: {st.record_time_used} message(s) had a zero header stamp; used the record time")
+        if self.labels is not None and self.labels.unmatched_scans:
+            ctx.warn(f"{self.labels.path}: no labels for {self.labels.unmatched_scans} radar scan(s)")
+        ctx.stats["streams"] = {s: st.as_dict() for s, st in self.stats.items() if st.messages or st.points}
+        ctx.stats["nonfinite_dropped"] = {s: st.nonfinite_dropped for s, st in self.stats.items()}
+        ctx.stats["labels"] = str(self.labels.path) if self.labels is not None else None
+        n_msgs = sum(st.messages for st in self.stats.values())
+        ctx.stats["read"] = {"seconds": round(seconds, 3), "messages": n_msgs, "bytes": self.src.bytes_read,
+                             "messages_per_s": round(n_msgs / max(seconds, 1e-9), 1),
+                             "mb_per_s": round(self.src.bytes_read / 1e6 / max(seconds, 1e-9), 2)}
+        if "radar" in self.src.streams and self.stats["radar"].messages == 0:
+            raise UserError(f"{self.path}: radar topic '{self.src.streams['radar']}' holds no messages")
+
+
+def buf_first(buf: ReorderBuffer | None) -> str:
+    if buf is None or buf.first_backwards_ns is None:
+        return "?"
+    return f"{buf.first_backwards_ns * 1e-9:.6f} s"
 
 
 STAGE = IngestStage()
