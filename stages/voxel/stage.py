@@ -1,25 +1,276 @@
-"""`voxel` stage: radar and lidar OctoMap-style voxel maps (RMap Sec. III-A)."""
+"""`voxel` stage: radar and lidar OctoMap-style voxel maps (RMap Sec. III-A).
+
+Both maps are sparse log-odds voxel maps at 0.15 m (``voxel_map.py``) built along a trajectory:
+
+- radar map: the radar-specific sensor model of the ColoRadar OctoMap fork (``radar_model.py``): the
+  voxels on a fan of rays covering the radar field of view are misses, returns inside the fan are hits;
+  built along ``trajectory`` (``groundtruth`` as in the paper, or ``odometry`` / ``slam`` for a radar-only
+  map);
+- lidar map: OctoMap ray casting (``raycast.py``, equal to ``OcTree.insertPointCloud`` up to edge ties)
+  of the lidar restricted to a horizontal field of view of 180 degrees centred on the radar boresight;
+  always built along the ground truth (it is the reference map of the evaluation).
+
+SE(2) trajectories (odometry, slam) are lifted to SE(3) with zero roll and pitch and a constant base
+height ``se2_height`` (default: the first ground-truth height, i.e. the same initial condition the 2D
+trajectory is anchored to; 0 without ground truth). Poses at sensor times: linear position and slerp
+rotation between ground-truth samples; scans outside the trajectory's time span are skipped (counted).
+
+Writes the occupied voxel centres with their log-odds (``radar_map.parquet``, ``lidar_map.parquet``),
+optionally OctoMap ``.bt`` files (when the ``octomap`` binding is importable), and logs both maps to
+Rerun (``world/voxel/radar``, ``world/voxel/lidar``, static, coloured by height).
+"""
 
 from __future__ import annotations
 
+import json
+import time
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+from pydantic import Field
+
 from pipeline.errors import UserError
+from pipeline.recording import scan_lengths
 from pipeline.stage import Stage, StageContext, StageParams
+from schemas.io import read_artifact, write_artifact
+from stages.voxel import octomap_io
+from stages.voxel.poses import horizontal_fov_mask, interpolate_se2, interpolate_se3
+from stages.voxel.radar_model import fan_directions, radar_scan_keys
+from stages.voxel.raycast import scan_update_keys
+from stages.voxel.voxel_map import SensorModel, VoxelMap
+
+F64 = npt.NDArray[np.float64]
 
 
 class VoxelParams(StageParams):
-    """Parameters of the `voxel` stage."""
+    """Parameters of the `voxel` stage (defaults: RMap Sec. III-A and the ColoRadar OctoMap fork)."""
+
+    trajectory: Literal["groundtruth", "odometry", "slam"] = Field(
+        "groundtruth", description="trajectory the radar map is built along (the lidar map always uses ground truth)"
+    )
+    slam_method: str = Field(
+        "", description="with trajectory=slam: read trajectory_<method>.parquet ('' = trajectory.parquet)"
+    )
+    se2_height: float | None = Field(
+        None, description="base height (m) for SE(2) trajectories; None = first ground-truth z (0 without ground truth)"
+    )
+    radar_source: Literal["raw", "filtered"] = Field(
+        "raw", description="radar points: ingest's raw radar.parquet (as the paper) or the filter stage's output"
+    )
+    resolution: float = Field(0.15, gt=0, description="voxel edge length (m)")
+    prob_hit: float = Field(0.7, gt=0, lt=1, description="occupancy probability of a hit")
+    prob_miss: float = Field(0.4, gt=0, lt=1, description="occupancy probability of a miss")
+    clamp_min: float = Field(0.12, gt=0, lt=1, description="lower clamping threshold (probability)")
+    clamp_max: float = Field(0.97, gt=0, lt=1, description="upper clamping threshold (probability)")
+    occupancy_threshold: float = Field(0.5, gt=0, lt=1, description="a voxel is occupied above this probability")
+    radar_azimuth_fov_deg: float = Field(45.0, gt=0, le=90, description="radar fan half-angle in azimuth (deg)")
+    radar_elevation_fov_deg: float = Field(45.0, gt=0, le=90, description="radar fan half-angle in elevation (deg)")
+    radar_min_range: float = Field(0.0, ge=0, description="radar fan rays start at this range (m)")
+    radar_max_range: float = Field(10.0, gt=0, description="radar fan range (m); returns beyond it are ignored")
+    lidar_fov_deg: float = Field(
+        180.0, gt=0, le=360, description="horizontal lidar field of view kept, centred on the radar boresight (deg)"
+    )
+    lidar_min_range: float = Field(0.0, ge=0, description="drop lidar points closer than this (m)")
+    lidar_max_range: float = Field(20.0, ge=0, description="drop lidar points farther than this (m); 0 = no limit")
+    lidar_stride: int = Field(1, ge=1, description="insert every k-th lidar scan (speed)")
+    lidar_discretize: bool = Field(
+        True, description="cast one ray per distinct end voxel (OctoMap's discretize option; same hit set, faster)"
+    )
+    export_bt: bool = Field(False, description="also write radar_map.bt / lidar_map.bt (needs the octomap binding)")
 
 
 class VoxelStage(Stage):
     name = "voxel"
     description = "radar and lidar OctoMap-style voxel maps (RMap Sec. III-A)"
-    inputs = ('ingest',)
+    inputs = ("ingest",)
     Params = VoxelParams
-    outputs = ('radar_map.parquet', 'lidar_map.parquet')
-    implemented = False
+    version = "1"
+    outputs = ("radar_map.parquet", "lidar_map.parquet")
+
+    def input_stages(self, params: StageParams) -> tuple[str, ...]:
+        assert isinstance(params, VoxelParams)
+        extra: list[str] = []
+        if params.trajectory in ("odometry", "slam"):
+            extra.append(params.trajectory)
+        if params.radar_source == "filtered":
+            extra.append("filter")
+        return (*self.inputs, *extra)
 
     def run(self, ctx: StageContext) -> None:
-        raise UserError("stage 'voxel' is not implemented yet")
+        p: VoxelParams = ctx.params
+        if p.clamp_min >= p.clamp_max:
+            raise UserError(f"voxel.clamp_min ({p.clamp_min}) must be below voxel.clamp_max ({p.clamp_max})")
+        calib = _read_calibration(ctx)
+        gt = read_artifact(ctx.input("ingest", "groundtruth.parquet"), "groundtruth")
+        gt_t = gt.column("t_ns").to_numpy()
+        gt_xyz = np.stack([gt.column(c).to_numpy() for c in ("x", "y", "z")], axis=1)
+        gt_q = np.stack([gt.column(c).to_numpy() for c in ("qx", "qy", "qz", "qw")], axis=1)
+        model = SensorModel(p.prob_hit, p.prob_miss, p.clamp_min, p.clamp_max, p.occupancy_threshold)
+
+        def gt_poses(t: npt.NDArray[np.int64]) -> tuple[F64, npt.NDArray[np.bool_]]:
+            if len(gt_t) == 0:
+                return np.tile(np.eye(4), (len(t), 1, 1)), np.zeros(len(t), bool)
+            return interpolate_se3(t, gt_t, gt_xyz, gt_q)
+
+        radar_poses = gt_poses if p.trajectory == "groundtruth" else self._se2_poses(ctx, p, gt_xyz)
+        radar_map = self._radar_map(ctx, p, model, calib["base_from_radar"], radar_poses)
+        lidar_map = self._lidar_map(ctx, p, model, calib, gt_poses)
+
+        for kind, vmap in (("radar", radar_map), ("lidar", lidar_map)):
+            xyz, lo = vmap.centres()
+            write_artifact({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "log_odds": lo},
+                           ctx.output(f"{kind}_map.parquet"), f"{kind}_map",
+                           metadata={"resolution": str(p.resolution), "trajectory":
+                                     p.trajectory if kind == "radar" else "groundtruth"})
+            ctx.stats[f"{kind}_voxels"] = vmap.counts()
+            ctx.recording.static_points(f"world/voxel/{kind}", xyz, colors=height_colors(xyz[:, 2]),
+                                        radii=p.resolution / 2)
+            if p.export_bt:
+                if octomap_io.available():
+                    keys, values = vmap.voxels(occupied_only=False)
+                    octomap_io.write_bt(ctx.output(f"{kind}_map.bt"), keys, values, p.resolution, model)
+                else:
+                    ctx.warn("export_bt: the octomap binding is not installed (pip install octomap-python); "
+                             "no .bt written")
+        n_r, n_l = ctx.stats["radar_voxels"]["occupied"], ctx.stats["lidar_voxels"]["occupied"]
+        ctx.stats["lr_ratio"] = n_l / n_r if n_r else float("nan")
+
+    # -- trajectories --------------------------------------------------------------------------------
+    def _se2_poses(self, ctx: StageContext, p: VoxelParams, gt_xyz: F64) -> Any:
+        if p.trajectory == "odometry":
+            tab = read_artifact(ctx.input("odometry", "odometry.parquet"), "odometry")
+        else:
+            fname = f"trajectory_{p.slam_method}.parquet" if p.slam_method else "trajectory.parquet"
+            tab = read_artifact(ctx.input("slam", fname), "trajectory")
+        if tab.num_rows == 0:
+            raise UserError(f"voxel: the {p.trajectory} trajectory is empty; rerun `pipeline run {p.trajectory}`")
+        z = p.se2_height if p.se2_height is not None else (float(gt_xyz[0, 2]) if len(gt_xyz) else 0.0)
+        ctx.stats["se2_height"] = z
+        cols = {c: tab.column(c).to_numpy() for c in ("t_ns", "x", "y", "yaw")}
+
+        def poses(t: npt.NDArray[np.int64]) -> tuple[F64, npt.NDArray[np.bool_]]:
+            return interpolate_se2(t, cols["t_ns"], cols["x"], cols["y"], cols["yaw"], z)
+
+        return poses
+
+    # -- radar ---------------------------------------------------------------------------------------
+    def _radar_map(self, ctx: StageContext, p: VoxelParams, model: SensorModel, base_from_radar: F64,
+                   poses: Any) -> VoxelMap:
+        if p.radar_source == "filtered":
+            tab = read_artifact(ctx.input("filter", "radar_filtered.parquet"), "radar_filtered",
+                                columns=["scan", "t_ns", "x", "y", "z"])
+        else:
+            tab = read_artifact(ctx.input("ingest", "radar.parquet"), "radar", columns=["scan", "t_ns", "x", "y", "z"])
+        scan = tab.column("scan").to_numpy()
+        t_ns = tab.column("t_ns").to_numpy()
+        pts = np.stack([tab.column(c).to_numpy() for c in ("x", "y", "z")], axis=1)
+        scans, lengths = scan_lengths(scan)
+        starts = np.r_[0, np.cumsum(lengths)[:-1]].astype(np.int64)
+        T_wb, valid = poses(t_ns[starts]) if len(starts) else (np.zeros((0, 4, 4)), np.zeros(0, bool))
+        T_ws = T_wb @ base_from_radar
+        dirs = fan_directions(np.radians(p.radar_azimuth_fov_deg), np.radians(p.radar_elevation_fov_deg),
+                              p.resolution, p.radar_max_range)
+        vmap = VoxelMap(p.resolution, model)
+        t0 = time.perf_counter()
+        n_pts = 0
+        with ctx.progress(len(scans), "radar map") as advance:
+            for i in np.flatnonzero(valid):
+                sl = slice(starts[i], starts[i] + lengths[i])
+                fan, hits = radar_scan_keys(pts[sl], T_ws[i], dirs, p.resolution, p.radar_min_range, p.radar_max_range)
+                vmap.integrate(fan, hits, hits_need_free=True)
+                n_pts += int(lengths[i])
+                advance(1)
+        dt = time.perf_counter() - t0
+        n_skip = int((~valid).sum())
+        if n_skip:
+            ctx.warn(f"{n_skip} of {len(scans)} radar scans lie outside the {p.trajectory} trajectory's time span "
+                     "and were skipped")
+        ctx.stats["radar"] = {"scans": int(valid.sum()), "scans_skipped": n_skip, "points": n_pts,
+                              "fan_rays": len(dirs), "seconds": round(dt, 3),
+                              "points_per_s": round(n_pts / dt, 1) if dt > 0 else None,
+                              "scans_per_s": round(float(valid.sum()) / dt, 2) if dt > 0 else None,
+                              "voxel_updates": vmap.n_updates}
+        return vmap
+
+    # -- lidar ---------------------------------------------------------------------------------------
+    def _lidar_map(self, ctx: StageContext, p: VoxelParams, model: SensorModel, calib: dict[str, F64],
+                   poses: Any) -> VoxelMap:
+        vmap = VoxelMap(p.resolution, model)
+        tab = read_artifact(ctx.input("ingest", "lidar.parquet"), "lidar", columns=["scan", "t_ns", "x", "y", "z"])
+        if tab.num_rows == 0:
+            ctx.warn("lidar.parquet holds no points: the lidar map is empty")
+            ctx.stats["lidar"] = {"scans": 0}
+            return vmap
+        scan = tab.column("scan").to_numpy()
+        t_ns = tab.column("t_ns").to_numpy()
+        pts = np.stack([tab.column(c).to_numpy() for c in ("x", "y", "z")], axis=1)
+        del tab
+        # restrict the lidar to the radar's horizontal field of view and to the range limits
+        base_from_lidar, base_from_radar = calib["base_from_lidar"], calib["base_from_radar"]
+        boresight_lidar = np.linalg.inv(base_from_lidar)[:3, :3] @ (base_from_radar[:3, :3] @ np.array([1.0, 0, 0]))
+        keep = horizontal_fov_mask(pts, boresight_lidar, np.radians(p.lidar_fov_deg))
+        rng = np.linalg.norm(pts, axis=1)
+        keep &= rng >= p.lidar_min_range
+        if p.lidar_max_range > 0:
+            keep &= rng <= p.lidar_max_range
+        scans, lengths = scan_lengths(scan)
+        starts = np.r_[0, np.cumsum(lengths)[:-1]].astype(np.int64)
+        use = np.zeros(len(scans), bool)
+        use[:: p.lidar_stride] = True
+        T_wb, valid = poses(t_ns[starts])
+        T_wl = T_wb @ base_from_lidar
+        t0 = time.perf_counter()
+        n_pts = 0
+        sel = np.flatnonzero(valid & use)
+        with ctx.progress(len(sel), "lidar map") as advance:
+            for i in sel:
+                sl = slice(starts[i], starts[i] + lengths[i])
+                local = pts[sl][keep[sl]].astype(np.float64)
+                T = T_wl[i]
+                world = local @ T[:3, :3].T + T[:3, 3]
+                free, hits = scan_update_keys(world, T[:3, 3], p.resolution, -1.0, discretize=p.lidar_discretize)
+                vmap.integrate(free, hits)
+                n_pts += len(local)
+                advance(1)
+        dt = time.perf_counter() - t0
+        n_skip = int((~valid[use]).sum())
+        if n_skip:
+            ctx.warn(f"{n_skip} lidar scans lie outside the ground truth's time span and were skipped")
+        ctx.stats["lidar"] = {"scans": len(sel), "scans_total": len(scans), "stride": p.lidar_stride,
+                              "scans_skipped": n_skip, "points_in_fov": n_pts,
+                              "points_dropped_by_fov_range": int((~keep).sum()),
+                              "seconds": round(dt, 3), "points_per_s": round(n_pts / dt, 1) if dt > 0 else None,
+                              "voxel_updates": vmap.n_updates}
+        return vmap
+
+
+def _read_calibration(ctx: StageContext) -> dict[str, F64]:
+    path = ctx.input("ingest", "calibration.json")
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: unreadable calibration ({exc}); rerun `pipeline run ingest --force`") from exc
+    out: dict[str, F64] = {}
+    for sensor in ("radar", "lidar"):
+        key = f"base_from_{sensor}"
+        T = np.asarray(raw.get(key, []), dtype=np.float64)
+        if T.shape != (4, 4):
+            raise UserError(f"{path}: '{key}' must be a 4x4 matrix; rerun `pipeline run ingest --force`")
+        out[key] = T
+    return out
+
+
+def height_colors(z: npt.ArrayLike) -> npt.NDArray[np.uint8]:
+    """RGB colours (turbo colormap) by height, 2nd to 98th percentile."""
+    from matplotlib import colormaps
+
+    zz = np.asarray(z, dtype=np.float64)
+    if len(zz) == 0:
+        return np.zeros((0, 3), np.uint8)
+    lo, hi = np.percentile(zz, [2, 98])
+    u = np.clip((zz - lo) / max(hi - lo, 1e-6), 0, 1)
+    return (colormaps["turbo"](u)[:, :3] * 255).astype(np.uint8)
 
 
 STAGE = VoxelStage()

@@ -1,0 +1,162 @@
+"""Map metrics of RMap Sec. IV-A on (N, 3) point clouds: Chamfer distances, F-score, D-Dist, per-axis CD.
+
+``pred`` is the predicted / input map (radar map, completed map), ``gt`` the lidar map. Nearest
+neighbours come from ``scipy.spatial.cKDTree`` in float64. Definitions (checked against PoinTr's
+``extensions/chamfer_dist`` and ``utils/metrics.py``, which RMap follows):
+
+- CD-l1 (PoinTr ``ChamferDistanceL1``, from PCN [20]): ``(mean_p min_g |p-g| + mean_g min_p |p-g|) / 2``;
+- CD-l2 (PoinTr ``ChamferDistanceL2``, eq. 1): ``mean_p min_g |p-g|^2 + mean_g min_p |p-g|^2`` (no /2);
+- both are reported in metres (m^2 for CD-l2) and, as the papers print them, multiplied by 1000;
+- F-score at ``d`` (Tatarchenko et al. [30], eq. 3-5): precision = share of ``pred`` within ``d`` of
+  ``gt``, recall = share of ``gt`` within ``d`` of ``pred``, strict ``<``; F = 2PR / (P + R), 0 when both
+  are 0. On voxel-centre clouds with ``d`` equal to the voxel size, neighbouring centres lie exactly
+  ``d`` apart and float32 rounding of the stored coordinates (about 1e-6 m at 10 m) would decide each
+  such tie at random; distances within ``tie_tol`` of ``d`` therefore count as not below ``d``, so only
+  coinciding voxels match ("predictions falling within the same voxel", Sec. IV-A). The default
+  ``tie_tol`` is 8 float32 ulps of the largest coordinate (2e-6 m for maps within 20 m of the origin),
+  far below any real distance difference, so on continuous clouds the result is the plain strict ``<``;
+- D-Dist (eq. 6): for every ``gt`` point the distance to the nearest ``pred`` point; its percentiles
+  (50/75/90/95, linear interpolation);
+- per-axis CD (eq. 7): ``CD^x = mean_p (p^x - g_min(p)^x)^2 + mean_g (p_min(g)^x - g^x)^2`` with the 3D
+  nearest neighbours; ``CD^x + CD^y + CD^z = CD-l2``;
+- L/R ratio (Table I): number of lidar map points over radar map points.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial import cKDTree
+
+F64 = npt.NDArray[np.float64]
+DDIST_PERCENTILES = (50.0, 75.0, 90.0, 95.0)
+
+
+def _cloud(points: npt.ArrayLike, name: str) -> F64:
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must be an (N, 3) array, got shape {arr.shape}")
+    return arr
+
+
+def nearest(query: npt.ArrayLike, ref: npt.ArrayLike) -> tuple[F64, npt.NDArray[np.int64]]:
+    """For every query point: the distance to, and index of, its nearest reference point."""
+    q, r = _cloud(query, "query"), _cloud(ref, "ref")
+    if len(r) == 0:
+        return np.full(len(q), np.inf), np.full(len(q), -1, np.int64)
+    if len(q) == 0:
+        return np.zeros(0), np.zeros(0, np.int64)
+    d, i = cKDTree(r).query(q, k=1, workers=-1)
+    return np.asarray(d, np.float64), np.asarray(i, np.int64)
+
+
+class MapComparison:
+    """Nearest neighbours of ``pred`` in ``gt`` and of ``gt`` in ``pred``, computed once for all metrics."""
+
+    def __init__(self, pred: npt.ArrayLike, gt: npt.ArrayLike) -> None:
+        self.pred = _cloud(pred, "pred")
+        self.gt = _cloud(gt, "gt")
+        self.d_pg, self.i_pg = nearest(self.pred, self.gt)  # pred -> nearest gt
+        self.d_gp, self.i_gp = nearest(self.gt, self.pred)  # gt -> nearest pred
+
+    @property
+    def empty(self) -> bool:
+        return len(self.pred) == 0 or len(self.gt) == 0
+
+    def chamfer_l1(self) -> float:
+        if self.empty:
+            return float("nan")
+        return float((self.d_pg.mean() + self.d_gp.mean()) / 2.0)
+
+    def chamfer_l2(self) -> float:
+        if self.empty:
+            return float("nan")
+        return float(np.mean(self.d_pg**2) + np.mean(self.d_gp**2))
+
+    def default_tie_tol(self) -> float:
+        """8 float32 ulps of the largest absolute coordinate (at least of 1 m)."""
+        big = max(1.0, float(np.abs(self.pred).max(initial=0.0)), float(np.abs(self.gt).max(initial=0.0)))
+        return 8.0 * float(np.finfo(np.float32).eps) * big
+
+    def fscore(self, d: float = 0.15, tie_tol: float | None = None) -> tuple[float, float, float]:
+        """(F-score, precision, recall) at distance ``d`` (eq. 3-5); ``tie_tol`` in metres (None: default)."""
+        if self.empty:
+            return float("nan"), float("nan"), float("nan")
+        thr = d - (self.default_tie_tol() if tie_tol is None else tie_tol)
+        p = float(np.mean(self.d_pg < thr))
+        r = float(np.mean(self.d_gp < thr))
+        f = 2 * p * r / (p + r) if p + r > 0 else 0.0
+        return f, p, r
+
+    def deviation_distribution(self, percentiles: Sequence[float] = DDIST_PERCENTILES) -> F64:
+        """Percentiles of the gt -> nearest pred distances (eq. 6)."""
+        if self.empty:
+            return np.full(len(percentiles), np.nan)
+        return np.percentile(self.d_gp, list(percentiles))
+
+    def chamfer_per_axis(self) -> F64:
+        """(CD^x, CD^y, CD^z) of eq. 7."""
+        if self.empty:
+            return np.full(3, np.nan)
+        a = np.mean((self.pred - self.gt[self.i_pg]) ** 2, axis=0)
+        b = np.mean((self.pred[self.i_gp] - self.gt) ** 2, axis=0)
+        return np.asarray(a + b, np.float64)
+
+
+def chamfer_l1(pred: npt.ArrayLike, gt: npt.ArrayLike) -> float:
+    """CD-l1 (PoinTr ChamferDistanceL1): mean of both directions' mean nearest distances, halved."""
+    return MapComparison(pred, gt).chamfer_l1()
+
+
+def chamfer_l2(pred: npt.ArrayLike, gt: npt.ArrayLike) -> float:
+    """CD-l2 (eq. 1, PoinTr ChamferDistanceL2): sum of both directions' mean squared nearest distances."""
+    return MapComparison(pred, gt).chamfer_l2()
+
+
+def fscore(pred: npt.ArrayLike, gt: npt.ArrayLike, d: float = 0.15, tie_tol: float | None = None) -> float:
+    """F-score at ``d`` (eq. 3-5)."""
+    return MapComparison(pred, gt).fscore(d, tie_tol)[0]
+
+
+def deviation_distribution(
+    pred: npt.ArrayLike, gt: npt.ArrayLike, percentiles: Sequence[float] = DDIST_PERCENTILES
+) -> F64:
+    """D-Dist (eq. 6): percentiles of the distance from each gt point to its nearest pred point."""
+    return MapComparison(pred, gt).deviation_distribution(percentiles)
+
+
+def chamfer_per_axis(pred: npt.ArrayLike, gt: npt.ArrayLike) -> F64:
+    """(CD^x, CD^y, CD^z) of eq. 7."""
+    return MapComparison(pred, gt).chamfer_per_axis()
+
+
+def lr_ratio(lidar: npt.ArrayLike | int, radar: npt.ArrayLike | int) -> float:
+    """L/R ratio of Table I: lidar map points over radar map points (counts or clouds)."""
+    n_l = lidar if isinstance(lidar, int) else len(np.asarray(lidar))
+    n_r = radar if isinstance(radar, int) else len(np.asarray(radar))
+    return float(n_l) / n_r if n_r else float("nan")
+
+
+def map_metrics(pred: npt.ArrayLike, gt: npt.ArrayLike, d: float = 0.15) -> dict[str, float]:
+    """All map metrics under DESIGN.md's metric names (``cd_l1``, ``cd_l2``, ``fscore_0.15``, ``ddist_p50``..)."""
+    cmp = MapComparison(pred, gt)
+    f, p, r = cmp.fscore(d)
+    cd1, cd2 = cmp.chamfer_l1(), cmp.chamfer_l2()
+    out = {
+        "cd_l1": cd1,
+        "cd_l2": cd2,
+        "cd_l1_x1000": cd1 * 1000.0,
+        "cd_l2_x1000": cd2 * 1000.0,
+        f"fscore_{d:g}": f,
+        f"precision_{d:g}": p,
+        f"recall_{d:g}": r,
+    }
+    for q, v in zip(DDIST_PERCENTILES, cmp.deviation_distribution(), strict=True):
+        out[f"ddist_p{q:g}"] = float(v)
+    for axis, v in zip("xyz", cmp.chamfer_per_axis(), strict=True):
+        out[f"cd_{axis}"] = float(v)
+    out["n_pred"] = float(len(cmp.pred))
+    out["n_gt"] = float(len(cmp.gt))
+    return out

@@ -1,0 +1,133 @@
+"""The `voxel` stage end to end on synthetic ingest artifacts (a box room; no simulator needed)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation, Slerp
+
+from pipeline.errors import UserError
+from pipeline.recording import entity_paths_in
+from schemas.io import read_artifact, write_artifact
+from stages.voxel.stage import STAGE, VoxelParams
+from stages.voxel.voxel_map import coord_to_key
+from tests.test_voxel_synthetic import BASE_FROM_LIDAR, distance_to_surfaces, make_context, write_ingest
+
+RES = 0.15
+
+
+@pytest.fixture(scope="module")
+def ingest_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("ingest")
+    write_ingest(d, duration=5.0)
+    return d
+
+
+@pytest.fixture(scope="module")
+def gt_run(tmp_path_factory: pytest.TempPathFactory, ingest_dir: Path) -> tuple[Path, dict]:
+    return _run(tmp_path_factory.mktemp("voxel_gt"), VoxelParams(), {"ingest": ingest_dir})
+
+
+def _run(tmp: Path, params: VoxelParams, inputs: dict[str, Path]) -> tuple[Path, dict]:
+    ctx = make_context("voxel", params, inputs, tmp / "voxel")
+    STAGE.run(ctx)
+    ctx.close()
+    return tmp / "voxel", ctx.stats
+
+
+def _map(path: Path, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    tab = read_artifact(path / f"{kind}_map.parquet", f"{kind}_map")
+    return np.stack([tab.column(c).to_numpy() for c in "xyz"], 1), tab.column("log_odds").to_numpy()
+
+
+def test_voxel_stage_groundtruth(gt_run: tuple[Path, dict]) -> None:
+    out, stats = gt_run
+    radar, radar_lo = _map(out, "radar")
+    lidar, lidar_lo = _map(out, "lidar")
+    assert len(radar) > 200 and len(lidar) > 1000
+    assert (radar_lo > 0).all() and (lidar_lo > 0).all()
+    # voxel centres on the 0.15 m grid, next to the room's surfaces (a frame or pose error would break this)
+    assert np.allclose((radar / RES - 0.5) - np.round(radar / RES - 0.5), 0, atol=1e-4)
+    assert np.percentile(distance_to_surfaces(lidar), 100) <= RES * np.sqrt(3) / 2 + 1e-3
+    assert np.percentile(distance_to_surfaces(radar), 95) <= 0.2
+    assert stats["lr_ratio"] == pytest.approx(len(lidar) / len(radar))
+    assert stats["radar"]["scans"] == 49 and stats["lidar"]["scans"] == 49
+    assert {"/world/voxel/radar", "/world/voxel/lidar"} <= entity_paths_in(out / "voxel.rrd")
+
+
+def test_lidar_map_equals_octomap_on_the_stage_inputs(gt_run: tuple[Path, dict], ingest_dir: Path) -> None:
+    """The stage's lidar map against OctoMap's insertPointCloud fed from the artifacts with poses and the
+    180 degree field of view computed here independently."""
+    octomap = pytest.importorskip("octomap")
+    out, _ = gt_run
+    lidar, _ = _map(out, "lidar")
+    lid = read_artifact(ingest_dir / "lidar.parquet", "lidar")
+    gt = read_artifact(ingest_dir / "groundtruth.parquet", "groundtruth")
+    g_t = gt.column("t_ns").to_numpy().astype(np.float64)
+    slerp = Slerp(g_t, Rotation.from_quat(np.stack([gt.column(c).to_numpy() for c in ("qx", "qy", "qz", "qw")], 1)))
+    g_xyz = np.stack([gt.column(c).to_numpy() for c in "xyz"], 1)
+    tree = octomap.OcTree(RES)
+    scan = lid.column("scan").to_numpy()
+    t_ns = lid.column("t_ns").to_numpy()
+    pts = np.stack([lid.column(c).to_numpy() for c in "xyz"], 1).astype(np.float64)
+    for s in np.unique(scan):
+        m = scan == s
+        t = float(t_ns[m][0])
+        T = np.eye(4)
+        T[:3, :3] = slerp([t]).as_matrix()[0]
+        T[:3, 3] = [np.interp(t, g_t, g_xyz[:, i]) for i in range(3)]
+        T = T @ BASE_FROM_LIDAR
+        p = pts[m]
+        # radar boresight = base +y = lidar -y (lidar yawed 180 deg): keep the half-space y_lidar <= 0
+        p = p[(p[:, 1] <= 0) & (np.linalg.norm(p, axis=1) <= 20.0)]
+        tree.insertPointCloud(p @ T[:3, :3].T + T[:3, 3], T[:3, 3].copy(), discretize=True)
+    ref = set()
+    for leaf in tree.begin_leafs():
+        if tree.isNodeOccupied(leaf):
+            assert leaf.getSize() == pytest.approx(RES)  # no pruned occupied nodes in this small map
+            ref.add(tuple(coord_to_key(np.asarray(leaf.getCoordinate())[None], RES)[0]))
+    got = {tuple(k) for k in coord_to_key(lidar, RES).tolist()}
+    assert len(ref) > 1000
+    assert len(got ^ ref) <= 3, (len(got ^ ref), len(ref))  # equal on these scans; allow rare edge ties
+
+
+def test_voxel_stage_odometry_trajectory(tmp_path: Path, ingest_dir: Path, gt_run: tuple[Path, dict]) -> None:
+    """A radar-only map along an SE(2) trajectory (here the ground truth's x, y, yaw)."""
+    params = VoxelParams(trajectory="odometry")
+    assert STAGE.input_stages(params) == ("ingest", "odometry")
+    assert STAGE.input_stages(VoxelParams(trajectory="slam", radar_source="filtered")) == ("ingest", "slam", "filter")
+    gt = read_artifact(ingest_dir / "groundtruth.parquet", "groundtruth")
+    q = np.stack([gt.column(c).to_numpy() for c in ("qx", "qy", "qz", "qw")], 1)
+    yaw = Rotation.from_quat(q).as_euler("zyx")[:, 0]
+    odo = tmp_path / "odometry"
+    odo.mkdir()
+    n = gt.num_rows
+    write_artifact({"scan": np.arange(n, dtype=np.int32), "t_ns": gt.column("t_ns").to_numpy(),
+                    "x": gt.column("x").to_numpy(), "y": gt.column("y").to_numpy(), "yaw": yaw},
+                   odo / "odometry.parquet", "odometry")
+    out, stats = _run(tmp_path, params, {"ingest": ingest_dir, "odometry": odo})
+    assert stats["se2_height"] == pytest.approx(gt.column("z").to_numpy()[0])
+    radar_odo, _ = _map(out, "radar")
+    radar_gt, _ = _map(gt_run[0], "radar")
+    a = {tuple(k) for k in coord_to_key(radar_odo, RES).tolist()}
+    b = {tuple(k) for k in coord_to_key(radar_gt, RES).tolist()}
+    # the same room up to the ground truth's small roll, pitch and height changes
+    assert len(a & b) > 0.3 * len(b)
+    assert np.percentile(distance_to_surfaces(radar_odo), 90) <= 0.3
+    meta = read_artifact(out / "radar_map.parquet", "radar_map").schema.metadata
+    assert meta[b"trajectory"] == b"odometry"
+
+
+def test_voxel_stage_bad_calibration(tmp_path: Path, ingest_dir: Path) -> None:
+    bad = tmp_path / "ingest"
+    bad.mkdir()
+    for f in ingest_dir.iterdir():
+        (bad / f.name).write_bytes(f.read_bytes())
+    calib = json.loads((bad / "calibration.json").read_text())
+    calib["base_from_lidar"] = [[1, 0, 0]]
+    (bad / "calibration.json").write_text(json.dumps(calib))
+    with pytest.raises(UserError, match=r"calibration.json: 'base_from_lidar' must be a 4x4"):
+        _run(tmp_path, VoxelParams(), {"ingest": bad})
