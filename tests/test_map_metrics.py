@@ -58,7 +58,7 @@ def test_voxel_grid_ties_and_identities() -> None:
     # shifted by one voxel: distances are 0.15 up to float32 rounding; strict '<' keeps only coinciding voxels
     for scale in (1, 600):  # also far from the origin (coordinates ~ 3.6 km), where float32 rounding is larger
         k = keys * [scale, 1, 1]
-        shifted_k = [*k, 1, 0, 0]
+        shifted_k = k + np.array([1, 0, 0])
         shifted = ((shifted_k + 0.5) * 0.15).astype(np.float32).astype(np.float64)
         ref_grid = ((k + 0.5) * 0.15).astype(np.float32).astype(np.float64)
         kset, sset = set(map(tuple, k.tolist())), set(map(tuple, shifted_k.tolist()))
