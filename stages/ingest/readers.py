@@ -229,7 +229,9 @@ class BagSource(Source):
 
     # -- iteration ---------------------------------------------------------------------------------------------
     def messages(self) -> Iterator[Message]:
-        by_topic = {topic: stream for stream, topic in self.streams.items()}
+        by_topic: dict[str, list[str]] = {}
+        for stream, topic in self.streams.items():
+            by_topic.setdefault(topic, []).append(stream)
         wanted = set(by_topic) | set(self.tf_topics)
         conns = [c for c in self.reader.connections if c.topic in wanted]
         counters = dict.fromkeys(self.streams, 0)
@@ -254,19 +256,19 @@ class BagSource(Source):
                 if conn.topic in self.tf_topics:
                     self._add_tf(msg)
                     continue
-                stream = by_topic[conn.topic]
-                stamp = _stamp_ns(msg.header)
-                out = Message(stream, stamp if stamp else int(rec_ns), counters[stream], frame=msg.header.frame_id,
-                              record_time=stamp == 0)
-                counters[stream] += 1
-                if stream in POINT_STREAMS:
-                    out.columns = self._decode_cloud(stream, msg, mappings)
-                elif stream == "imu":
-                    a, w = msg.linear_acceleration, msg.angular_velocity
-                    out.values = np.array([a.x, a.y, a.z, w.x, w.y, w.z], dtype=np.float64)
-                else:
-                    out.values, out.frame, out.child_frame = _pose_values(msg, conn.msgtype)
-                yield out
+                for stream in by_topic[conn.topic]:
+                    stamp = _stamp_ns(msg.header)
+                    out = Message(stream, stamp if stamp else int(rec_ns), counters[stream],
+                                  frame=msg.header.frame_id, record_time=stamp == 0)
+                    counters[stream] += 1
+                    if stream in POINT_STREAMS:
+                        out.columns = self._decode_cloud(stream, msg, mappings)
+                    elif stream == "imu":
+                        a, w = msg.linear_acceleration, msg.angular_velocity
+                        out.values = np.array([a.x, a.y, a.z, w.x, w.y, w.z], dtype=np.float64)
+                    else:
+                        out.values, out.frame, out.child_frame = _pose_values(msg, conn.msgtype)
+                    yield out
         finally:
             self.reader.close()
 

@@ -1,25 +1,176 @@
-"""`odometry` stage: radar-inertial odometry (EKF-RIO) at radar scan times."""
+"""`odometry` stage: radar-inertial odometry (EKF-RIO) at radar scan times.
+
+``source = "ekf"`` fuses the IMU with the filter's Doppler ego-velocity (stages/odometry/ekf_rio.py);
+``source = "bag"`` takes the odometry topic the dataset profile (or ``ingest.odometry_topic``) names,
+interpolated at the radar scan times. Either way the output is world <- base as SE(2) (x, y, yaw).
+
+Anchoring: the filter runs in its own gravity-aligned frame with zero initial yaw. With ``anchor =
+"groundtruth"`` (default) the planar trajectory is moved rigidly so that its first pose equals the
+ground-truth pose at that time (so odometry, SLAM and ground truth share one world frame); without
+ground truth, or with ``anchor = "origin"``, the first pose is (0, 0, 0). Nothing else uses ground truth.
+"""
 
 from __future__ import annotations
 
+import json
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+from pydantic import Field
+
 from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams
+from schemas.io import read_artifact, write_artifact
+from stages.ingest.geometry import interpolate_poses, yaw_of
+from stages.odometry.ekf_rio import EkfConfig, run_ekf
+from stages.odometry.metrics import drift, se2_compose_anchor
+
+POSE_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 
 
 class OdometryParams(StageParams):
-    """Parameters of the `odometry` stage."""
+    """Parameters of the `odometry` stage (EKF-RIO noise model and anchoring)."""
+
+    source: Literal["ekf", "bag"] = Field("ekf", description="'ekf': EKF-RIO; 'bag': the log's odometry topic")
+    anchor: Literal["groundtruth", "origin"] = Field(
+        "groundtruth", description="start at the ground-truth pose of the first scan, or at (0, 0, 0)")
+    gravity: float = Field(9.80665, gt=0, description="gravity magnitude, m/s^2")
+    accel_noise_density: float = Field(0.02, gt=0, description="accelerometer white noise, m/s^2/sqrt(Hz)")
+    gyro_noise_density: float = Field(0.002, gt=0, description="gyro white noise, rad/s/sqrt(Hz)")
+    accel_bias_walk: float = Field(1e-3, ge=0, description="accelerometer bias random walk, m/s^2/sqrt(s)")
+    gyro_bias_walk: float = Field(1e-4, ge=0, description="gyro bias random walk, rad/s/sqrt(s)")
+    sigma_v0: float = Field(0.2, gt=0, description="initial velocity std, m/s")
+    sigma_attitude0_deg: float = Field(2.0, gt=0, description="initial roll/pitch std, degrees")
+    sigma_gyro_bias0: float = Field(0.005, gt=0, description="initial gyro bias std, rad/s (MEMS turn-on bias)")
+    sigma_accel_bias0: float = Field(0.1, gt=0, description="initial accelerometer bias std, m/s^2")
+    init_window_s: float = Field(0.2, gt=0, description="IMU window (each side of the first scan) for gravity")
+    use_estimator_covariance: bool = Field(True, description="use the ego-velocity LSQ covariance as R")
+    velocity_cov_scale: float = Field(1.0, gt=0, description="scales the ego-velocity covariance")
+    velocity_sigma_mps: float = Field(0.1, gt=0, description="fixed ego-velocity std when not using the estimator's")
+    gate_probability: float = Field(0.999, gt=0, lt=1, description="chi-square gate of the velocity update")
+    zero_rate_update: bool = Field(True, description="zero angular-rate update on zero-velocity scans")
+    zero_rate_sigma: float = Field(0.002, gt=0, description="std of the zero angular-rate pseudo-measurement, rad/s")
+    init_motion_compensation: bool = Field(
+        True, description="remove the kinematic acceleration (from the first ego-velocities) before gravity alignment")
 
 
 class OdometryStage(Stage):
     name = "odometry"
     description = "radar-inertial odometry (EKF-RIO) at radar scan times"
-    inputs = ('ingest', 'filter')
+    inputs = ("ingest", "filter")
     Params = OdometryParams
-    outputs = ('odometry.parquet',)
-    implemented = False
+    version = "1"
+    outputs = ("odometry.parquet",)
+
+    def input_stages(self, params: StageParams) -> tuple[str, ...]:
+        assert isinstance(params, OdometryParams)
+        return ("ingest",) if params.source == "bag" else self.inputs
 
     def run(self, ctx: StageContext) -> None:
-        raise UserError("stage 'odometry' is not implemented yet")
+        p: OdometryParams = ctx.params
+        calib = json.loads(ctx.input("ingest", "calibration.json").read_text())
+        base_from_imu = np.asarray(calib["base_from_imu"], dtype=np.float64)
+        base_from_radar = np.asarray(calib["base_from_radar"], dtype=np.float64)
+        if p.source == "bag":
+            scans, scan_t, T_wb, valid = self._from_bag(ctx)
+        else:
+            scans, scan_t, T_wb, valid = self._from_ekf(ctx, base_from_imu, base_from_radar)
+        x, y, yaw = T_wb[:, 0, 3], T_wb[:, 1, 3], yaw_of(T_wb[:, :3, :3])
+
+        gt = read_artifact(ctx.input("ingest", "groundtruth.parquet"), "groundtruth")
+        gt_t = gt["t_ns"].to_numpy()
+        gt_poses = np.stack([gt[c].to_numpy() for c in POSE_COLS], axis=1)
+        T_gt, inside = interpolate_poses(gt_t, gt_poses, scan_t)
+        first = int(np.argmax(valid)) if valid.any() else 0
+        anchored = "origin"
+        if len(scan_t):
+            if p.anchor == "groundtruth" and len(gt_t) and inside[first]:
+                ref = T_gt[first]
+                x, y, yaw = se2_compose_anchor(x, y, yaw, first, ref[0, 3], ref[1, 3], float(yaw_of(ref[:3, :3])))
+                anchored = "groundtruth"
+            else:
+                if p.anchor == "groundtruth":
+                    ctx.warn("no ground truth at the first odometry pose: anchored at the origin instead")
+                x, y, yaw = se2_compose_anchor(x, y, yaw, first, 0.0, 0.0, 0.0)
+        write_artifact({"scan": scans.astype(np.int32), "t_ns": scan_t, "x": x, "y": y, "yaw": yaw,
+                        "valid": valid}, ctx.output("odometry.parquet"), "odometry",
+                       metadata={"anchor": anchored, "source": p.source})
+        ctx.stats["anchor"] = anchored
+        ctx.stats["source"] = p.source
+        ctx.stats["scans"] = len(scans)
+        ok = valid & inside
+        if len(gt_t) >= 2 and ok.sum() >= 2:
+            ref = np.stack([T_gt[:, 0, 3], T_gt[:, 1, 3], yaw_of(T_gt[:, :3, :3])], axis=1)
+            est = np.stack([x, y, yaw], axis=1)
+            ctx.stats["drift"] = drift(scan_t[ok], est[ok], ref[ok])
+            d = ctx.stats["drift"]
+            ctx.console.print(f"[dim]odometry: drift {d.get('drift_pct_of_distance')} % of "
+                              f"{d.get('path_length_m')} m, yaw {d.get('yaw_drift_deg_per_min')} deg/min[/]")
+        z = np.zeros_like(x)
+        ctx.recording.trajectory("world/odometry", scans, scan_t, np.stack([x, y, z], axis=1), color=(70, 130, 255))
+
+    def _from_ekf(self, ctx: StageContext, base_from_imu: npt.NDArray[np.float64],
+                  base_from_radar: npt.NDArray[np.float64]
+                  ) -> tuple[npt.NDArray[Any], npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.bool_]]:
+        p: OdometryParams = ctx.params
+        ego = read_artifact(ctx.input("filter", "ego_velocity.parquet"), "ego_velocity")
+        imu = read_artifact(ctx.input("ingest", "imu.parquet"), "imu")
+        if imu.num_rows < 2:
+            raise UserError(f"{ctx.input('ingest', 'imu.parquet')}: no IMU samples; EKF-RIO needs an IMU "
+                            f"(or use --set odometry.source=bag with an odometry topic)")
+        scans = ego["scan"].to_numpy()
+        scan_t = ego["t_ns"].to_numpy()
+        vel = np.stack([ego[c].to_numpy() for c in ("vx", "vy", "vz")], axis=1)
+        names = ego.column_names
+        valid = ego["valid"].to_numpy() if "valid" in names else np.isfinite(vel).all(axis=1)
+        dims = ego["dims"].to_numpy() if "dims" in names else np.full(len(scans), 3)
+        cov = np.tile(np.eye(3) * p.velocity_sigma_mps ** 2, (len(scans), 1, 1))
+        if all(f"cov_{a}{b}" in names for a, b in ("xx", "xy", "xz", "yy", "yz", "zz")):
+            for a, b in ("xx", "xy", "xz", "yy", "yz", "zz"):
+                i, j = "xyz".index(a), "xyz".index(b)
+                cov[:, i, j] = cov[:, j, i] = ego[f"cov_{a}{b}"].to_numpy()
+        imu_t = imu["t_ns"].to_numpy()
+        acc = np.stack([imu[c].to_numpy() for c in ("ax", "ay", "az")], axis=1)
+        gyro = np.stack([imu[c].to_numpy() for c in ("gx", "gy", "gz")], axis=1)
+        cfg = EkfConfig(
+            gravity=p.gravity, accel_noise_density=p.accel_noise_density, gyro_noise_density=p.gyro_noise_density,
+            accel_bias_walk=p.accel_bias_walk, gyro_bias_walk=p.gyro_bias_walk, sigma_v0=p.sigma_v0,
+            sigma_attitude0=np.radians(p.sigma_attitude0_deg), sigma_gyro_bias0=p.sigma_gyro_bias0,
+            sigma_accel_bias0=p.sigma_accel_bias0, init_window_s=p.init_window_s,
+            velocity_cov_scale=p.velocity_cov_scale, velocity_sigma=p.velocity_sigma_mps,
+            use_estimator_covariance=p.use_estimator_covariance, gate_probability=p.gate_probability,
+            zero_rate_update=p.zero_rate_update, zero_rate_sigma=p.zero_rate_sigma,
+            init_motion_compensation=p.init_motion_compensation)
+        imu_from_radar = np.linalg.inv(base_from_imu) @ base_from_radar
+        res = run_ekf(imu_t, acc, gyro, scan_t, vel, cov, dims, valid, imu_from_radar, cfg)
+        if not res.initialized.any():
+            raise UserError(f"{ctx.input('filter', 'ego_velocity.parquet')}: no scan with a valid ego-velocity "
+                            f"inside the IMU time span; the EKF cannot start")
+        ctx.stats["ekf"] = res.stats
+        ctx.stats["gyro_bias_final"] = [round(float(b), 6) for b in res.gyro_bias[-1]]
+        ctx.stats["accel_bias_final"] = [round(float(b), 5) for b in res.accel_bias[-1]]
+        T_wb = res.T_world_imu @ np.linalg.inv(base_from_imu)
+        return scans, scan_t, T_wb, res.initialized
+
+    def _from_bag(self, ctx: StageContext
+                  ) -> tuple[npt.NDArray[Any], npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.bool_]]:
+        path = ctx.input_dirs["ingest"] / "bag_odometry.parquet"
+        if not path.exists():
+            raise UserError(f"{path}: the log has no odometry topic; name one in the dataset profile or with "
+                            f"--set ingest.odometry_topic=TOPIC, or use --set odometry.source=ekf")
+        odo = read_artifact(path, "groundtruth")
+        radar = read_artifact(ctx.input("ingest", "radar.parquet"), "radar", columns=["scan", "t_ns"])
+        scans, first = np.unique(radar["scan"].to_numpy(), return_index=True)
+        scan_t = radar["t_ns"].to_numpy()[first]
+        if odo.num_rows == 0:
+            raise UserError(f"{path}: the odometry topic holds no messages")
+        T, inside = interpolate_poses(odo["t_ns"].to_numpy(), np.stack([odo[c].to_numpy() for c in POSE_COLS], 1),
+                                      scan_t)
+        if (~inside).any():
+            ctx.warn(f"{int((~inside).sum())} radar scan(s) outside the odometry topic's time span (held)")
+        ctx.stats["bag_odometry_messages"] = odo.num_rows
+        return scans, scan_t, T, inside
 
 
 STAGE = OdometryStage()

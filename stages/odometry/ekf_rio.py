@@ -1,0 +1,251 @@
+"""EKF radar-inertial odometry (EKF-RIO, Doer & Trommer 2020): IMU propagation, Doppler ego-velocity updates.
+
+Error-state EKF in the IMU frame. Nominal state: position p and velocity v of the IMU in the world
+frame, attitude R = world <- imu, gyro bias b_g and accelerometer bias b_a; error state
+``dx = [dp, dv, dtheta, db_g, db_a]`` (15) with the right perturbation ``R = R_hat Exp(dtheta)``.
+
+Propagation (zero-order hold of each IMU sample, world gravity g = (0, 0, -|g|)):
+``p += v dt + 1/2 (R a + g) dt^2``, ``v += (R a + g) dt``, ``R <- R Exp(w dt)`` with ``a = a_m - b_a``,
+``w = w_m - b_g``; ``F`` has ``dv' = -R [a]x dtheta - R db_a`` and ``dtheta' = -[w]x dtheta - db_g``.
+
+Measurement (radar velocity in the radar frame; extrinsic imu <- radar = (R_ir, t_ir)):
+``v_r = R_ir^T (R^T v + w x t_ir)`` with ``H_v = R_ir^T R^T``, ``H_theta = R_ir^T [R^T v]x``,
+``H_bg = R_ir^T [t_ir]x``; a chi-square gate rejects outliers. Scans the estimator marks as zero
+velocity also give a zero-angular-rate update (``w_m - b_g = 0``), which makes the gyro bias observable
+whenever the platform stands still.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+F64 = npt.NDArray[np.float64]
+
+
+def skew(v: F64) -> F64:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def so3_exp(w: F64) -> F64:
+    """Rodrigues' formula for a rotation vector."""
+    th = float(np.linalg.norm(w))
+    K = skew(w)
+    if th < 1e-8:
+        return np.eye(3) + K + 0.5 * K @ K
+    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th ** 2 * K @ K
+
+
+@dataclass(frozen=True)
+class EkfConfig:
+    gravity: float = 9.80665
+    accel_noise_density: float = 0.02
+    gyro_noise_density: float = 0.002
+    accel_bias_walk: float = 1e-3
+    gyro_bias_walk: float = 1e-4
+    sigma_v0: float = 0.2
+    sigma_attitude0: float = np.radians(2.0)
+    sigma_gyro_bias0: float = 0.005
+    sigma_accel_bias0: float = 0.1
+    init_window_s: float = 0.2
+    velocity_cov_scale: float = 1.0
+    velocity_sigma: float = 0.1
+    use_estimator_covariance: bool = True
+    gate_probability: float = 0.999
+    zero_rate_update: bool = True
+    zero_rate_sigma: float = 0.002
+    init_motion_compensation: bool = True
+
+
+@dataclass
+class EkfResult:
+    """World <- imu poses at the scan times and per-scan diagnostics."""
+
+    T_world_imu: F64
+    velocity: F64
+    gyro_bias: F64
+    accel_bias: F64
+    updated: npt.NDArray[np.bool_]
+    rejected: npt.NDArray[np.bool_]
+    initialized: npt.NDArray[np.bool_]
+    #: sqrt of the covariance diagonal per scan (15: p, v, theta, b_g, b_a)
+    sigma: F64 = field(default_factory=lambda: np.zeros((0, 15)))
+    stats: dict[str, int] = field(default_factory=dict)
+
+
+class EkfRio:
+    """The filter state and its two operations."""
+
+    def __init__(self, cfg: EkfConfig, R0: F64, v0: F64) -> None:
+        self.cfg = cfg
+        self.p = np.zeros(3)
+        self.v = np.asarray(v0, dtype=np.float64).copy()
+        self.R = np.asarray(R0, dtype=np.float64).copy()
+        self.bg = np.zeros(3)
+        self.ba = np.zeros(3)
+        self.g = np.array([0.0, 0.0, -cfg.gravity])
+        s = np.r_[np.zeros(3), np.full(3, cfg.sigma_v0), np.full(2, cfg.sigma_attitude0), 1e-6,
+                  np.full(3, cfg.sigma_gyro_bias0), np.full(3, cfg.sigma_accel_bias0)]
+        self.P = np.diag(s ** 2)
+        q = np.r_[np.full(3, cfg.accel_noise_density ** 2), np.full(3, cfg.gyro_noise_density ** 2),
+                  np.full(3, cfg.gyro_bias_walk ** 2), np.full(3, cfg.accel_bias_walk ** 2)]
+        self._qc = q  # continuous-time noise densities of [v, theta, bg, ba]
+
+    def propagate(self, acc: F64, gyro: F64, dt: float) -> None:
+        if dt <= 0:
+            return
+        a = acc - self.ba
+        w = gyro - self.bg
+        R = self.R
+        acc_w = R @ a + self.g
+        self.p = self.p + self.v * dt + 0.5 * acc_w * dt * dt
+        self.v = self.v + acc_w * dt
+        self.R = R @ so3_exp(w * dt)
+        F = np.eye(15)
+        F[0:3, 3:6] = np.eye(3) * dt
+        F[3:6, 6:9] = -R @ skew(a) * dt
+        F[3:6, 12:15] = -R * dt
+        F[6:9, 6:9] = so3_exp(-w * dt)
+        F[6:9, 9:12] = -np.eye(3) * dt
+        P = F @ self.P @ F.T
+        idx = np.arange(3, 15)
+        P[idx, idx] += self._qc * dt
+        self.P = 0.5 * (P + P.T)
+
+    def _correct(self, y: F64, H: F64, Rm: F64) -> bool:
+        S = H @ self.P @ H.T + Rm
+        try:
+            Sinv_y = np.linalg.solve(S, y)
+        except np.linalg.LinAlgError:
+            return False
+        d2 = float(y @ Sinv_y)
+        if d2 > chi2.ppf(self.cfg.gate_probability, df=len(y)):
+            return False
+        K = np.linalg.solve(S, H @ self.P).T  # P H^T S^-1 (S symmetric)
+        dx = K @ y
+        IKH = np.eye(15) - K @ H
+        self.P = IKH @ self.P @ IKH.T + K @ Rm @ K.T
+        self.P = 0.5 * (self.P + self.P.T)
+        self.p += dx[0:3]
+        self.v += dx[3:6]
+        self.R = self.R @ so3_exp(dx[6:9])
+        self.bg += dx[9:12]
+        self.ba += dx[12:15]
+        return True
+
+    def update_velocity(self, v_radar: F64, cov: F64, rows: F64, gyro: F64, R_ir: F64, t_ir: F64) -> bool:
+        """Radar ego-velocity update on the measurement rows ``rows`` (indices into x, y, z)."""
+        w = gyro - self.bg
+        v_body = self.R.T @ self.v
+        h = R_ir.T @ (v_body + np.cross(w, t_ir))
+        H = np.zeros((3, 15))
+        H[:, 3:6] = R_ir.T @ self.R.T
+        H[:, 6:9] = R_ir.T @ skew(v_body)
+        H[:, 9:12] = R_ir.T @ skew(t_ir)
+        r = np.asarray(rows, dtype=int)
+        return self._correct((v_radar - h)[r], H[r], cov[np.ix_(r, r)])
+
+    def update_zero_rate(self, gyro_mean: F64, sigma: float) -> bool:
+        H = np.zeros((3, 15))
+        H[:, 9:12] = np.eye(3)
+        return self._correct(gyro_mean - self.bg, H, np.eye(3) * sigma ** 2)
+
+
+def gravity_aligned(acc_mean: F64) -> F64:
+    """world <- imu with zero yaw whose z axis is the measured 'up' (the specific force at rest)."""
+    up = acc_mean / np.linalg.norm(acc_mean)
+    # rotation taking `up` (imu frame) to world z; then remove its yaw
+    rot, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up])
+    R = rot.as_matrix()
+    yaw = np.arctan2(R[1, 0], R[0, 0])
+    c, s = np.cos(-yaw), np.sin(-yaw)
+    return np.asarray(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ R)
+
+
+def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArray[np.int64], vel: F64, cov: F64,
+            dims: npt.NDArray[np.integer], valid: npt.NDArray[np.bool_], imu_from_radar: F64, cfg: EkfConfig
+            ) -> EkfResult:
+    """Run the filter over a whole sequence; poses (world <- imu) at every scan time.
+
+    The filter starts at the first scan with a valid ego-velocity that has IMU data before it; earlier
+    scans repeat the initial pose (``initialized`` false). Attitude starts gravity-aligned from the mean
+    specific force over ``init_window_s`` (yaw 0) less the kinematic acceleration ``dv/dt + w x v`` seen by
+    the first two ego-velocities (so a start in motion does not tilt the initial attitude), velocity from
+    that scan's ego-velocity.
+    """
+    S = len(scan_t)
+    out = EkfResult(np.tile(np.eye(4), (S, 1, 1)), np.zeros((S, 3)), np.zeros((S, 3)), np.zeros((S, 3)),
+                    np.zeros(S, bool), np.zeros(S, bool), np.zeros(S, bool), np.zeros((S, 15)))
+    R_ir, t_ir = imu_from_radar[:3, :3], imu_from_radar[:3, 3]
+    if S == 0 or len(imu_t) < 2:
+        return out
+    starts = np.flatnonzero(valid & (scan_t >= imu_t[0]) & (scan_t <= imu_t[-1]))
+    if len(starts) == 0:
+        return out
+    s0 = int(starts[0])
+    t0 = scan_t[s0]
+    win = (imu_t >= t0 - round(cfg.init_window_s * 1e9)) & (imu_t <= t0 + round(cfg.init_window_s * 1e9))
+    if not win.any():
+        win = np.argsort(np.abs(imu_t - t0))[:10]
+    k = int(np.searchsorted(imu_t, t0, side="right") - 1)
+    w0 = gyro[win].mean(axis=0)
+    v_imu = R_ir @ vel[s0] - np.cross(w0, t_ir)
+    f0 = acc[win].mean(axis=0)
+    nxt = starts[1] if len(starts) > 1 else None
+    if cfg.init_motion_compensation and nxt is not None and (scan_t[nxt] - t0) < 1e9:
+        # specific force = kinematic acceleration - gravity: remove d(v_body)/dt + w x v_body first
+        v1 = R_ir @ vel[nxt] - np.cross(w0, t_ir)
+        dv = (v1 - v_imu) / ((scan_t[nxt] - t0) * 1e-9)
+        if np.all(np.isfinite(dv)):
+            f0 = f0 - dv - np.cross(w0, v_imu)
+    R0 = gravity_aligned(f0)
+    ekf = EkfRio(cfg, R0, R0 @ v_imu)
+    chi_rows = {3: np.arange(3), 2: np.arange(2), 0: np.arange(3)}
+    n_upd = n_rej = n_zaru = 0
+    tc = int(t0)
+    N = len(imu_t)
+    for s in range(S):
+        if s < s0:
+            continue
+        target = int(scan_t[s])
+        g_sum = np.zeros(3)
+        g_dt = 0.0
+        while tc < target:
+            t_next = min(int(imu_t[k + 1]) if k + 1 < N else target, target)
+            if t_next <= tc:
+                k += 1
+                continue
+            dt = (t_next - tc) * 1e-9
+            ekf.propagate(acc[k], gyro[k], dt)
+            g_sum += gyro[k] * dt
+            g_dt += dt
+            tc = t_next
+            if k + 1 < N and tc >= imu_t[k + 1]:
+                k += 1
+        if s > s0 and valid[s]:
+            c = cov[s] * cfg.velocity_cov_scale if cfg.use_estimator_covariance else np.eye(3) * cfg.velocity_sigma ** 2
+            c = np.where(np.isfinite(c), c, 0.0)
+            rows = chi_rows.get(int(dims[s]), np.arange(3))
+            if ekf.update_velocity(vel[s], c, rows, gyro[min(k, N - 1)], R_ir, t_ir):
+                n_upd += 1
+                out.updated[s] = True
+            else:
+                n_rej += 1
+                out.rejected[s] = True
+            if cfg.zero_rate_update and int(dims[s]) == 0 and g_dt > 0:
+                n_zaru += int(ekf.update_zero_rate(g_sum / g_dt, cfg.zero_rate_sigma))
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = ekf.R, ekf.p
+        out.T_world_imu[s] = T
+        out.velocity[s] = ekf.v
+        out.gyro_bias[s] = ekf.bg
+        out.accel_bias[s] = ekf.ba
+        out.sigma[s] = np.sqrt(np.diag(ekf.P))
+        out.initialized[s] = True
+    out.T_world_imu[:s0] = out.T_world_imu[s0]
+    out.stats = {"start_scan": s0, "velocity_updates": n_upd, "velocity_rejected": n_rej, "zero_rate_updates": n_zaru}
+    return out
