@@ -1,25 +1,518 @@
-"""`evaluate` stage: the papers' tables and figures."""
+"""`evaluate` stage: the papers' tables and figures for one sequence.
+
+Sections (parameter ``sections``):
+
+- ``trajectory`` (RICH-SLAM Table III, Fig. 11): every trajectory of the run (odometry and each slam
+  method) against ground truth after the SE(2) alignment on the first ``n_align`` matched frames;
+- ``mapping`` (Q1/Q2, Fig. 6): occupancy AUC with ground-truth poses on held-out scans for HILBERT-GP
+  (Kalman update) and the SGD Hilbert-map baselines at several feature counts, plus a count grid;
+  writes ``gt_map_grid.parquet`` (the HILBERT-GP map trained on the training scans);
+- ``uncertainty`` (Fig. 10): quartiles of the normalised predictive uncertainty over the mapped area
+  while that map is built;
+- ``rmap`` (RMap Tables I/III/IV): the radar map (and the completed map when the ``complete`` stage
+  ran) against the lidar map with ``map_metrics.py``.
+
+Writes ``metrics.parquet`` (seq, method, metric, value; plus ``features`` and ``section``),
+``report.md`` and PNG figures beside it, and logs every scalar to Rerun under ``metrics/``.
+"""
 
 from __future__ import annotations
 
+import json
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+from pydantic import Field
+
 from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams
+from schemas import read_artifact, write_artifact
+from stages.evaluate import figures, tables
+from stages.evaluate.trajectory import evaluate_trajectory, path_length, quat_to_yaw
+
+F64 = npt.NDArray[np.float64]
+Section = Literal["trajectory", "mapping", "uncertainty", "rmap"]
+MappingMethod = Literal["hilbert_gp", "rff", "sparse", "nystrom", "grid"]
 
 
 class EvaluateParams(StageParams):
     """Parameters of the `evaluate` stage."""
 
+    sections: list[Section] = Field(["trajectory", "mapping", "uncertainty", "rmap"],
+                                    description="what to evaluate: trajectory, mapping, uncertainty, rmap")
+    seed: int = Field(0, description="seed of every random draw (split, free samples, random features)")
+    # -- trajectories
+    n_align: int = Field(100, ge=2, description="SE(2) alignment on the first N ground-truth-matched frames")
+    max_gt_gap_s: float = Field(0.5, gt=0, description="an estimate is matched only when the ground-truth "
+                                "samples around its time are at most this far apart (s)")
+    # -- mapping (AUC protocol)
+    auc_points: Literal["filtered", "raw"] = Field("filtered", description="radar points of the AUC protocol: "
+                                                   "the filter stage's output or the raw detections")
+    test_fraction: float = Field(0.2, gt=0, lt=1, description="share of scans held out for the AUC")
+    split_block_scans: int = Field(10, ge=1, description="scans are held out in contiguous blocks of this size "
+                                   "(blocks drawn at random with the seed)")
+    free_per_metre: float = Field(0.5, gt=0, description="free samples per metre of beam: max(1, floor(d * "
+                                  "this)) per beam, uniform in [0, d - 0.1] (Hilbert maps: 0.5)")
+    max_range: float | None = Field(None, gt=0, description="drop beams longer than this (m); default: the "
+                                    "slam stage's max_range (5 m, Table II)")
+    z_min: float | None = Field(None, description="keep radar points with base-frame z >= z_min (m); default: "
+                                "the slam stage's gate if it has one")
+    z_max: float | None = Field(None, description="keep radar points with base-frame z <= z_max (m); default: "
+                                "the slam stage's gate if it has one")
+    methods: list[MappingMethod] = Field(["hilbert_gp", "rff", "sparse", "nystrom", "grid"],
+                                         description="mapping methods of the AUC comparison")
+    feature_counts: list[int] = Field([64, 144, 256, 400], description="numbers of map features (Fig. 6); "
+                                      "perfect squares for the tensor Hilbert basis")
+    headline: bool = Field(True, description="also score every method at the slam stage's feature count M "
+                           "(the rows without @) and write gt_map_grid.parquet / gt_map.png")
+    gp_lengthscale: float | None = Field(None, gt=0, description="HILBERT-GP length scale in the slam stage's "
+                                         "units (default: the slam posterior's)")
+    gp_signal_variance: float | None = Field(None, gt=0, description="HILBERT-GP signal variance (default: "
+                                             "the slam posterior's)")
+    gp_noise_variance: float | None = Field(None, gt=0, description="HILBERT-GP noise variance (default: "
+                                            "the slam posterior's)")
+    domain_padding: float | None = Field(None, ge=0, description="Hilbert domain = ground-truth envelope "
+                                         "padded by this (m); default: the slam stage's padding")
+    baseline_lengthscale: float = Field(1.0, gt=0, description="SE length scale of the RFF and Nystrom "
+                                        "baselines and the minimum sparse-kernel support (m)")
+    sgd_alpha: float = Field(1e-4, gt=0, description="L2 penalty of the SGD baselines (also sets the "
+                             "learning rate 1 / (alpha (t0 + t)))")
+    sgd_epochs: int = Field(1, ge=1, description="passes over the training scans for the SGD baselines")
+    sparse_support_factor: float = Field(2.0, gt=0, description="sparse-kernel support in inducing-grid "
+                                         "spacings")
+    grid_resolution: float = Field(0.5, gt=0, description="cell size of the count-grid reference (m)")
+    grid_spacing: float = Field(0.25, gt=0, description="query spacing of the maps written and plotted (m)")
+    uncertainty_every: int = Field(10, ge=1, description="record the uncertainty quartiles every N scans")
+    # -- RMap
+    fscore_threshold: float = Field(0.15, gt=0, description="F-score distance d (m), RMap: one voxel")
+
+
+#: parameters of the slam stage this stage falls back to (name in slam's manifest -> default)
+SLAM_FALLBACKS = {"max_range": 5.0, "domain_padding": 5.0}
+
 
 class EvaluateStage(Stage):
     name = "evaluate"
     description = "the papers' tables and figures"
-    inputs = ('ingest', 'slam', 'voxel')
+    inputs = ("ingest", "filter", "odometry", "slam", "voxel")
+    optional_inputs = ("complete",)
     Params = EvaluateParams
-    outputs = ('metrics.parquet', 'report.md')
-    implemented = False
+    version = "1"
+    outputs = ("metrics.parquet", "report.md")
+
+    def input_stages(self, params: StageParams) -> tuple[str, ...]:
+        assert isinstance(params, EvaluateParams)
+        s = set(params.sections)
+        need = ["ingest"]
+        if "mapping" in s or "uncertainty" in s:
+            need += ["filter"] if params.auc_points == "filtered" else []
+        if "trajectory" in s:
+            need += ["odometry"]
+        if s & {"trajectory", "mapping", "uncertainty"}:
+            need += ["slam"]
+        if "rmap" in s:
+            need += ["voxel"]
+        return tuple(n for n in self.inputs if n in need)
 
     def run(self, ctx: StageContext) -> None:
-        raise UserError("stage 'evaluate' is not implemented yet")
+        p: EvaluateParams = ctx.params
+        t_start = time.perf_counter()
+        self.records: list[dict[str, Any]] = []
+        self.figures: dict[str, str] = {}
+        self.notes: dict[str, list[str]] = {}
+        gt = self._groundtruth(ctx)
+        if "trajectory" in p.sections:
+            self._trajectories(ctx, gt)
+        if "mapping" in p.sections or "uncertainty" in p.sections:
+            self._mapping(ctx, gt)
+        if "rmap" in p.sections:
+            self._rmap(ctx)
+        self._write(ctx)
+        ctx.stats["seconds"] = round(time.perf_counter() - t_start, 3)
+
+    # -- helpers ------------------------------------------------------------------------------------------------
+    def add(self, section: str, method: str, metric: str, value: float, features: int = 0) -> None:
+        self.records.append({"section": section, "method": method, "metric": metric, "value": float(value),
+                             "features": int(features)})
+
+    def note(self, section: str, text: str) -> None:
+        self.notes.setdefault(section, []).append(text)
+
+    @staticmethod
+    def _slam_params(ctx: StageContext) -> dict[str, Any]:
+        if not ctx.has_input("slam"):
+            return {}
+        path = ctx.input_dirs["slam"] / "manifest.json"
+        try:
+            return dict(json.loads(path.read_text()).get("params", {}))
+        except (FileNotFoundError, json.JSONDecodeError):
+            return {}
+
+    def _groundtruth(self, ctx: StageContext) -> dict[str, Any]:
+        path = ctx.input("ingest", "groundtruth.parquet")
+        t = read_artifact(path, "groundtruth")
+        if t.num_rows < 2:
+            raise UserError(f"{path}: {t.num_rows} ground-truth poses; evaluation needs ground truth (the "
+                            "sequence's /lidar_ground_truth topic or groundtruth/ folder)")
+        c = {k: t[k].to_numpy().astype(np.float64) for k in ("x", "y", "z", "qx", "qy", "qz", "qw")}
+        order = np.argsort(t["t_ns"].to_numpy(), kind="stable")
+        out = {k: v[order] for k, v in c.items()}
+        out["t_ns"] = t["t_ns"].to_numpy()[order]
+        out["yaw"] = quat_to_yaw(out["qx"], out["qy"], out["qz"], out["qw"])
+        return out
+
+    # -- trajectories (Table III, Fig. 11) ------------------------------------------------------------------------
+    def _trajectory_files(self, ctx: StageContext) -> list[tuple[str, Path, str]]:
+        files: list[tuple[str, Path, str]] = []
+        odo = ctx.input_dirs.get("odometry")
+        if odo is not None and (odo / "odometry.parquet").exists():
+            files.append(("odometry", odo / "odometry.parquet", "odometry"))
+        slam = ctx.input_dirs.get("slam")
+        if slam is not None:
+            named = sorted(slam.glob("trajectory_*.parquet"))
+            for f in named:
+                files.append((f.stem.removeprefix("trajectory_"), f, "trajectory"))
+            if not any(m == "rich_slam" for m, _, _ in files) and (slam / "trajectory.parquet").exists():
+                files.append(("rich_slam", slam / "trajectory.parquet", "trajectory"))
+        return files
+
+    def _trajectories(self, ctx: StageContext, gt: dict[str, Any]) -> None:
+        p: EvaluateParams = ctx.params
+        gt_xy = np.stack([gt["x"], gt["y"]], 1)
+        files = self._trajectory_files(ctx)
+        if not files:
+            ctx.warn("no trajectories to evaluate (odometry.parquet, trajectory_*.parquet)")
+            return
+        aligned: dict[str, F64] = {}
+        span: tuple[int, int] | None = None
+        for method, path, schema in files:
+            t = read_artifact(path, schema)
+            est_t = t["t_ns"].to_numpy()
+            xy = np.stack([t["x"].to_numpy(), t["y"].to_numpy()], 1)
+            try:
+                err = evaluate_trajectory(est_t, xy, t["yaw"].to_numpy(), gt["t_ns"], gt_xy, gt["yaw"],
+                                          p.n_align, int(p.max_gt_gap_s * 1e9))
+            except ValueError as exc:
+                ctx.warn(f"{path.name}: {exc}; skipped")
+                continue
+            self.add("trajectory", method, "ate_pos_rmse_m", err.pos_rmse_m)
+            self.add("trajectory", method, "ate_yaw_rmse_deg", err.yaw_rmse_deg)
+            self.add("trajectory", method, "matched_frames", err.n_matched)
+            final = float(np.linalg.norm(err.xy_aligned[-1] - err.xy_gt[-1]))
+            self.add("trajectory", method, "final_pos_error_m", final)
+            ctx.stats.setdefault("alignment", {})[method] = {
+                "rotation_deg": round(err.rotation_deg, 4), "translation_m": [round(v, 4) for v in err.translation],
+                "aligned_on": err.n_aligned, "matched": err.n_matched, "of": len(est_t)}
+            aligned[method] = err.xy_aligned
+            lo, hi = int(err.t_ns[0]), int(err.t_ns[-1])
+            span = (lo, hi) if span is None else (min(span[0], lo), max(span[1], hi))
+        if span is not None:
+            m = (gt["t_ns"] >= span[0]) & (gt["t_ns"] <= span[1])
+            self.add("trajectory", "groundtruth", "length_m", path_length(gt_xy[m]))
+            self.add("trajectory", "groundtruth", "duration_s", (span[1] - span[0]) / 1e9)
+            figures.plot_trajectories(ctx.output("trajectories.png"), gt_xy[m], aligned,
+                                      f"{ctx.seq.name}: SE(2)-aligned on the first {p.n_align} matched frames")
+            self.figures["trajectory"] = "trajectories.png"
+
+    # -- mapping (Fig. 6, 7, 10) -----------------------------------------------------------------------------------
+    def _mapping(self, ctx: StageContext, gt: dict[str, Any]) -> None:
+        from stages.evaluate import mapping as mp
+        from stages.evaluate.occupancy import hilbert_maps_samples, split_scans_by_block
+        from stages.evaluate.world import gt_interpolator, radar_beams_world
+
+        p: EvaluateParams = ctx.params
+        rng = np.random.default_rng(p.seed)
+        slam_params = self._slam_params(ctx)
+        post = self._posterior_meta(ctx)
+        max_range = p.max_range or float(slam_params.get("max_range") or SLAM_FALLBACKS["max_range"])
+        z_min = p.z_min if p.z_min is not None else slam_params.get("z_min")
+        z_max = p.z_max if p.z_max is not None else slam_params.get("z_max")
+        padding = p.domain_padding if p.domain_padding is not None else float(
+            slam_params.get("domain_padding") or SLAM_FALLBACKS["domain_padding"])
+
+        stage, fname, schema = ("filter", "radar_filtered.parquet", "radar_filtered") if p.auc_points == "filtered" \
+            else ("ingest", "radar.parquet", "radar")
+        radar_path = ctx.input(stage, fname)
+        radar = read_artifact(radar_path, schema, columns=["scan", "t_ns", "x", "y", "z"])
+        calib = self._calibration(ctx)
+        interp = gt_interpolator(gt, int(p.max_gt_gap_s * 1e9))
+        beams = radar_beams_world(radar, calib, interp, max_range, z_min, z_max)
+        ctx.stats["auc_beams"] = beams.stats
+        if len(beams.scan) < 10:
+            raise UserError(f"{radar_path}: only {len(beams.scan)} radar points fall within ground truth and "
+                            f"max_range {max_range} m; the AUC protocol needs radar scans with ground-truth poses")
+        samples = hilbert_maps_samples(beams.origin, beams.end, beams.scan, rng, p.free_per_metre)
+        # the Hilbert domain: ground-truth envelope plus the slam stage's padding
+        env = np.stack([gt["x"], gt["y"]], 1)[interp.span_mask(gt["t_ns"])]
+        lo, hi = env.min(0) - padding, env.max(0) + padding
+        half, centre = (hi - lo) / 2.0, (hi + lo) / 2.0
+        inside = np.all(np.abs(samples.points - centre) < half, axis=1)
+        samples = samples.select(inside)
+        test_mask = split_scans_by_block(samples.scan, p.test_fraction, p.split_block_scans, rng)
+        train, test = samples.select(~test_mask), samples.select(test_mask)
+        n_scans = len(np.unique(samples.scan))
+        ctx.stats["auc_samples"] = {"train": len(train), "test": len(test), "outside_domain": int((~inside).sum()),
+                                    "scans": n_scans, "test_scans": len(np.unique(test.scan)),
+                                    "occupied_share_test": float(np.mean(test.labels > 0)) if len(test) else None}
+        gp_cfg = mp.GPConfig(
+            (float(half[0]), float(half[1])), (float(centre[0]), float(centre[1])),
+            lengthscale_m=(p.gp_lengthscale or post["lengthscale"]) * post["length_unit_m"],
+            signal_variance=p.gp_signal_variance or post["signal_variance"],
+            noise_variance=p.gp_noise_variance or post["noise_variance"],
+            basis_kind=post["basis_kind"])
+        ctx.stats["gp"] = {"half_widths": list(gp_cfg.half_widths), "centre": list(gp_cfg.centre),
+                           "lengthscale_m": gp_cfg.lengthscale_m, "signal_variance": gp_cfg.signal_variance,
+                           "noise_variance": gp_cfg.noise_variance, "M": post["M"], "basis": gp_cfg.basis_kind}
+        self.note("mapping", f"{len(train)} training and {len(test)} held-out samples from {n_scans} scans "
+                  f"({p.test_fraction:.0%} of the scans held out in blocks of {p.split_block_scans}, seed {p.seed}); "
+                  f"ground-truth poses; HILBERT-GP l = {gp_cfg.lengthscale_m:g} m, sf2 = {gp_cfg.signal_variance:g}, "
+                  f"sn2 = {gp_cfg.noise_variance:g} on {2 * half[0]:.1f} m x {2 * half[1]:.1f} m; baselines "
+                  f"l = {p.baseline_lengthscale:g} m, SGD alpha = {p.sgd_alpha:g}, {p.sgd_epochs} epoch(s)")
+
+        t_scan = {int(s): int(t) for s, t in zip(beams.scan, beams.t_ns, strict=True)}
+        M = int(post["M"])
+        fit = None
+        if p.headline or "uncertainty" in p.sections:
+            # the headline map: HILBERT-GP at the slam stage's M, tracking the uncertainty over the mapped area
+            track = None
+            if "uncertainty" in p.sections:
+                pos = np.stack([gt["x"], gt["y"]], 1)[interp.span_mask(gt["t_ns"])]
+                track = mp.observed_cells(lo, hi, max(p.grid_spacing, 0.5), pos, max_range)
+            with ctx.progress(len(np.unique(train.scan)), f"HILBERT-GP M={M} (Kalman, ground-truth poses)") as adv:
+                fit = mp.fit_hilbert_gp(train, gp_cfg, M, track, p.uncertainty_every, on_scan=adv)
+        if "mapping" in p.sections:
+            self._auc(ctx, mp, train, test, gp_cfg, fit if p.headline else None, M, rng)
+            if fit is not None and p.headline:
+                self._gt_map(ctx, fit, gp_cfg, lo, hi, gt, interp, train)
+        if "uncertainty" in p.sections and fit is not None:
+            self._uncertainty(ctx, fit, t_scan, gt)
+
+    def _auc(self, ctx: StageContext, mp: Any, train: Any, test: Any, gp_cfg: Any, fit: Any, M: int,
+             rng: np.random.Generator) -> None:
+        """AUC rows: ``<method>@<count>`` per feature count, ``<method>`` at the slam's M (``fit`` given)."""
+        from stages.evaluate.occupancy import roc_auc
+
+        p: EvaluateParams = ctx.params
+        base = mp.BaselineConfig(p.baseline_lengthscale, p.sgd_alpha, p.sgd_epochs, p.sparse_support_factor,
+                                 p.grid_resolution)
+        counts = sorted(set(p.feature_counts) | ({M} if fit is not None else set()))
+        feature_methods = [m for m in p.methods if m != "grid"]
+        rows = []
+        with ctx.progress(len(feature_methods) * len(counts), "AUC: methods x feature counts") as adv:
+            if "hilbert_gp" in p.methods:
+                hg_counts = list(counts)
+                if fit is not None:
+                    t0 = time.perf_counter()
+                    rows.append(mp.AucRow("hilbert_gp", M, roc_auc(test.labels, fit.query(test.points)[2]),
+                                          time.perf_counter() - t0))
+                    hg_counts.remove(M)
+                    adv(1)
+                if hg_counts:
+                    rows += mp.auc_suite(train, test, gp_cfg, base, hg_counts, ["hilbert_gp"], rng,
+                                         on_fit=lambda *_: adv(1))
+            rest = [m for m in p.methods if m != "hilbert_gp"]
+            if rest and (counts or "grid" in rest):
+                rows += mp.auc_suite(train, test, gp_cfg, base, counts, rest, rng, on_fit=lambda *_: adv(1))
+        fig_rows = []
+        ref: dict[str, float] = {}
+        for r in rows:
+            if r.method == "grid":
+                self.add("mapping", "grid", "auc", r.auc)
+                self.add("mapping", "grid", "fit_seconds", r.seconds)
+                ref["grid"] = r.auc
+                continue
+            if r.features in p.feature_counts:
+                self.add("mapping", f"{r.method}@{r.features}", "auc", r.auc, r.features)
+                self.add("mapping", f"{r.method}@{r.features}", "fit_seconds", r.seconds, r.features)
+                fig_rows.append((r.method, r.features, r.auc, 0.0))
+            if r.features == M and fit is not None:
+                self.add("mapping", r.method, "auc", r.auc, r.features)
+        if not fig_rows:
+            return
+        figures.plot_auc_vs_features(ctx.output("auc_vs_features.png"), fig_rows,
+                                     f"{ctx.seq.name}: occupancy AUC, ground-truth poses", ref)
+        self.figures["mapping"] = "auc_vs_features.png"
+
+    def _gt_map(self, ctx: StageContext, fit: Any, gp_cfg: Any, lo: F64, hi: F64, gt: dict[str, Any],
+                interp: Any, train: Any) -> None:
+        p: EvaluateParams = ctx.params
+        gx = np.arange(lo[0] + p.grid_spacing / 2, hi[0], p.grid_spacing)
+        gy = np.arange(lo[1] + p.grid_spacing / 2, hi[1], p.grid_spacing)
+        pts = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
+        mean, var, occ = fit.query(pts)
+        from stages.slam import hilbert_map as hm
+
+        u0 = hm.prior_variance_at(fit.basis, fit.prior_diag, pts)
+        write_artifact({"x": pts[:, 0], "y": pts[:, 1], "occupancy": occ, "variance": var, "mean": mean,
+                        "prior_variance": u0}, ctx.output("gt_map_grid.parquet"), "map_grid")
+        shape = (len(gx), len(gy))
+        traj = np.stack([gt["x"], gt["y"]], 1)[interp.span_mask(gt["t_ns"])]
+        auc = next((r["value"] for r in self.records if r["method"] == "hilbert_gp" and r["metric"] == "auc"), None)
+        title = (f"{ctx.seq.name}: HILBERT-GP on ground-truth poses, M={fit.basis.M}, l={gp_cfg.lengthscale_m:g} m, "
+                 f"sf2={gp_cfg.signal_variance:g}" + (f", AUC {auc:.3f}" if auc is not None else ""))
+        figures.plot_map_pair(ctx.output("gt_map.png"), gx, gy, occ.reshape(shape),
+                              (var / np.maximum(u0, 1e-300)).reshape(shape), title, traj,
+                              train.points[train.labels > 0])
+        self.figures["gt_map"] = "gt_map.png"
+
+    def _uncertainty(self, ctx: StageContext, fit: Any, t_scan: dict[int, int], gt: dict[str, Any]) -> None:
+        rows = fit.uncertainty
+        curves: dict[str, F64] = {}
+        if len(rows):
+            t0 = min(t_scan.values())
+            ts = np.array([(t_scan.get(int(s), t0) - t0) / 1e9 for s in rows[:, 0]])
+            curves["HILBERT-GP, ground-truth poses (training scans)"] = np.column_stack([ts, rows[:, 1:]])
+            scans = rows[:, 0].astype(np.int64)
+            t_ns = np.array([t_scan.get(int(s), t0) for s in scans], np.int64)
+            for j, q in enumerate(("p25", "p50", "p75")):
+                ctx.recording.scalars(f"metrics/uncertainty/{q}", scans, t_ns, rows[:, 1 + j])
+            self.add("uncertainty", "hilbert_gp", "uncertainty_p50_final", rows[-1, 2])
+            self.add("uncertainty", "hilbert_gp", "uncertainty_iqr_final", rows[-1, 3] - rows[-1, 1])
+            self.add("uncertainty", "hilbert_gp", "uncertainty_p50_first", rows[0, 2])
+        online = self._slam_uncertainty(ctx)
+        if online is not None:
+            curves["RICH-SLAM online map (slam stage)"] = online
+            self.add("uncertainty", "rich_slam", "uncertainty_p50_final", online[-1, 2])
+        if curves:
+            figures.plot_uncertainty(ctx.output("uncertainty.png"), curves,
+                                     f"{ctx.seq.name}: normalised predictive uncertainty (median, 25-75 %)")
+            self.figures["uncertainty"] = "uncertainty.png"
+            self.note("uncertainty", "normalised uncertainty u(p) / u_prior(p) (eq. 33 over the prior) on "
+                      "the cells within max_range of the ground-truth path; quartiles after each "
+                      f"{ctx.params.uncertainty_every}th training scan" +
+                      ("; the slam stage's per-scan statistics are drawn as well" if online is not None else
+                       "; the slam stage wrote no map_stats.parquet, so only the ground-truth-pose map is shown"))
+
+    @staticmethod
+    def _slam_uncertainty(ctx: StageContext) -> F64 | None:
+        """Rows (t_s, p25, p50, p75) from the slam stage's ``map_stats.parquet`` when it wrote one."""
+        d = ctx.input_dirs.get("slam")
+        if d is None or not (d / "map_stats.parquet").exists():
+            return None
+        import pyarrow.parquet as pq
+
+        t = pq.read_table(d / "map_stats.parquet")
+        names = set(t.column_names)
+        cols = next(((a, b, c) for a, b, c in (("u_p25", "u_p50", "u_p75"), ("p25", "p50", "p75"),
+                                               ("uncertainty_p25", "uncertainty_p50", "uncertainty_p75"))
+                     if {a, b, c} <= names), None)
+        if cols is None or "t_ns" not in names or t.num_rows == 0:
+            return None
+        tn = t["t_ns"].to_numpy()
+        return np.column_stack([(tn - tn[0]) / 1e9, *[t[c].to_numpy().astype(np.float64) for c in cols]])
+
+    def _posterior_meta(self, ctx: StageContext) -> dict[str, Any]:
+        path = ctx.input("slam", "map_posterior.parquet")
+        cols = ["L1", "L2", "cx", "cy", "M", "lengthscale", "signal_variance", "noise_variance"]
+        t = read_artifact(path, "map_posterior", columns=cols)
+        import pyarrow.parquet as pq
+
+        names = pq.read_schema(path).names
+        extra = [c for c in ("length_unit_m", "basis_kind") if c in names]
+        row = {c: t[c][0].as_py() for c in cols}
+        if extra:
+            e = pq.read_table(path, columns=extra)
+            row.update({c: e[c][0].as_py() for c in extra})
+        row.setdefault("length_unit_m", 1.0)
+        row["length_unit_m"] = float(row.get("length_unit_m") or 1.0)
+        row.setdefault("basis_kind", "tensor")
+        row["basis_kind"] = row.get("basis_kind") or "tensor"
+        return row
+
+    @staticmethod
+    def _calibration(ctx: StageContext) -> F64:
+        path = ctx.input("ingest", "calibration.json")
+        try:
+            T = np.asarray(json.loads(path.read_text())["base_from_radar"], np.float64)
+        except (KeyError, json.JSONDecodeError, ValueError) as exc:
+            raise UserError(f"{path}: no readable base_from_radar 4x4 ({exc}); rerun `pipeline run ingest "
+                            f"--seq {ctx.seq.name} --force`") from exc
+        if T.shape != (4, 4):
+            raise UserError(f"{path}: base_from_radar has shape {T.shape}, expected 4x4")
+        return T
+
+    # -- RMap (Tables I, III, IV) -----------------------------------------------------------------------------------
+    def _rmap(self, ctx: StageContext) -> None:
+        from stages.evaluate.map_metrics import lr_ratio, map_metrics
+
+        p: EvaluateParams = ctx.params
+
+        def cloud(stage: str, fname: str, schema: str) -> F64:
+            t = read_artifact(ctx.input(stage, fname), schema, columns=["x", "y", "z"])
+            return np.stack([t[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], 1)
+
+        lidar = cloud("voxel", "lidar_map.parquet", "lidar_map")
+        maps = {"radar_map": cloud("voxel", "radar_map.parquet", "radar_map")}
+        d = ctx.input_dirs.get("complete")
+        if d is not None and (d / "completed_map.parquet").exists():
+            maps["completed_map"] = cloud("complete", "completed_map.parquet", "completed_map")
+        elif "complete" in ctx.input_dirs:
+            ctx.warn("the complete stage's folder has no completed_map.parquet; only the radar map is scored")
+        for name, pts in maps.items():
+            m = map_metrics(pts, lidar, p.fscore_threshold)
+            for k, v in m.items():
+                self.add("rmap", name, k, v)
+            self.add("rmap", name, "lr_ratio", lr_ratio(len(lidar), len(pts)))
+        self.add("rmap", "lidar_map", "n_points", len(lidar))
+        self.note("rmap", f"against the lidar map ({len(lidar)} voxel centres); F-score at {p.fscore_threshold:g} m; "
+                  "CD-l2 and CD^x/y/z in m², the others in m (x1000 values are in metrics.parquet as *_x1000)")
+        figures.plot_maps_top(ctx.output("maps_top.png"), {"lidar_map": lidar, **maps},
+                              f"{ctx.seq.name}: voxel maps, top view (colour: z)", seed=p.seed)
+        self.figures["rmap"] = "maps_top.png"
+
+    # -- outputs --------------------------------------------------------------------------------------------------
+    def _write(self, ctx: StageContext) -> None:
+        seq = ctx.seq.name
+        recs = [{"seq": seq, **r} for r in self.records]
+        write_artifact({
+            "seq": [r["seq"] for r in recs], "method": [r["method"] for r in recs],
+            "metric": [r["metric"] for r in recs], "value": np.array([r["value"] for r in recs], np.float64),
+            "features": np.array([r["features"] for r in recs], np.int32),
+            "section": [r["section"] for r in recs],
+        }, ctx.output("metrics.parquet"), "metrics")
+        ctx.output("report.md").write_text(render_report(seq, recs, self.figures, self.notes))
+        import rerun as rr
+
+        for r in recs:
+            if np.isfinite(r["value"]):
+                ctx.recording.log(f"metrics/{r['method']}/{r['metric']}", rr.Scalars([r["value"]]), static=True)
+        ctx.stats["metrics"] = len(recs)
+
+
+def render_report(seq: str, records: list[dict[str, Any]], figs: dict[str, str], notes: dict[str, list[str]]) -> str:
+    """``report.md``: the tables of each section with their figures."""
+    out = [f"# Evaluation of `{seq}`", ""]
+
+    def section(title: str, key: str, tabs: list[tuple[list[str], list[list[str]]]], fig_keys: list[str]) -> None:
+        recs = [r for r in records if r["section"] == key]
+        if not recs and not any(k in figs for k in fig_keys):
+            return
+        out.extend([f"## {title}", ""])
+        for n in notes.get(key, []):
+            out.extend([n, ""])
+        for headers, rows in tabs:
+            if rows:
+                out.extend([tables.markdown(headers, rows), ""])
+        for k in fig_keys:
+            if k in figs:
+                out.extend([f"![{k}]({figs[k]})", ""])
+
+    traj = [r for r in records if r["section"] == "trajectory"]
+    section("Trajectories (RICH-SLAM Table III): position RMSE [m] / yaw RMSE [deg]", "trajectory",
+            [tables.trajectory_table(traj)], ["trajectory"])
+    mapping = [r for r in records if r["section"] == "mapping"]
+    section("Mapping: occupancy AUC on held-out scans (RICH-SLAM Fig. 6)", "mapping",
+            [tables.headline_auc_table(mapping), tables.auc_table(mapping)], ["mapping", "gt_map"])
+    unc = [r for r in records if r["section"] == "uncertainty"]
+    section("Predictive uncertainty over time (RICH-SLAM Fig. 10)", "uncertainty",
+            [(["method", "metric", "value"], [[r["method"], r["metric"], tables.fmt(r["value"])] for r in unc])],
+            ["uncertainty"])
+    rm = [r for r in records if r["section"] == "rmap"]
+    section("Maps against the lidar map (RMap Tables I, III, IV)", "rmap", [tables.rmap_table(rm)], ["rmap"])
+    return "\n".join(out).rstrip() + "\n"
 
 
 STAGE = EvaluateStage()

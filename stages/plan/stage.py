@@ -1,25 +1,233 @@
-"""`plan` stage: A* plus continuous refinement on the Hilbert map (RICH-SLAM Sec. V-D)."""
+"""`plan` stage: A* plus continuous refinement on the Hilbert map (RICH-SLAM Sec. V-D).
+
+For each strategy (greedy ``c = z``, uncertainty-aware ``c = z / (sqrt(u) + eps)``, eq. 35): A* on the
+occupancy grid queried from the slam posterior (obstacles where ``o > o_max``; cell costs are the
+strategy cost shifted to be nonnegative, so A* solves a discretised eq. 34), resampled to waypoints,
+then refined under eq. 34 by SLSQP (``refine.py``). Writes ``paths.parquet`` (strategy, k, x, y: the
+refined paths ``greedy`` / ``uncertainty`` and the A* guesses ``astar_<strategy>``), ``plan.png``
+(Fig. 12) and Rerun line strips under ``world/plan/<strategy>``.
+"""
 
 from __future__ import annotations
 
+import time
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+from pydantic import Field, model_validator
+
 from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams
+from schemas import read_artifact, write_artifact
+from stages.plan.astar import astar
+from stages.plan.field import MapField, strategy_cost
+from stages.plan.refine import PlanProblem, refine, resample_polyline
+
+F64 = npt.NDArray[np.float64]
+STRATEGIES = ("greedy", "uncertainty")
 
 
 class PlanParams(StageParams):
     """Parameters of the `plan` stage."""
 
+    start: list[float] | None = Field(None, description="start [x, y] in the map frame (m); default: the first "
+                                      "slam trajectory pose")
+    goal: list[float] | None = Field(None, description="goal [x, y] in the map frame (m); default: the trajectory "
+                                     "pose farthest from the start")
+    strategies: list[Literal["greedy", "uncertainty"]] = Field(
+        ["greedy", "uncertainty"], description="cost strategies of eq. 35 to plan with")
+    grid_spacing: float = Field(0.25, gt=0, description="spacing of the occupancy grid queried for A* (m)")
+    o_max: float = Field(0.6, gt=0, lt=1, description="occupancy bound o_max of eq. 34 (eq. 28 occupancy); "
+                         "grid cells above it are A* obstacles")
+    d_max: float = Field(1.0, gt=0, description="step bound d_max of eq. 34 (m)")
+    waypoint_spacing: float = Field(0.5, gt=0, description="spacing of the waypoints resampled from the A* path "
+                                    "(m); must not exceed d_max")
+    alpha: float = Field(1.0, ge=0, description="weight of the path length in eq. 34")
+    beta: float = Field(1.0, ge=0, description="weight of the map cost in eq. 34")
+    eps: float = Field(1e-3, gt=0, description="epsilon of the uncertainty-aware cost (eq. 35)")
+    domain_margin: float = Field(0.5, ge=0, description="distance kept from the Hilbert domain's edge (m): the "
+                                 "domain bound Omega of eq. 34")
+    max_iter: int = Field(200, ge=1, description="SLSQP iteration limit")
+
+    @model_validator(mode="after")
+    def _check(self) -> PlanParams:
+        for name in ("start", "goal"):
+            v = getattr(self, name)
+            if v is not None and len(v) != 2:
+                raise ValueError(f"{name} must be [x, y]")
+        if self.waypoint_spacing > self.d_max:
+            raise ValueError(f"waypoint_spacing {self.waypoint_spacing} exceeds d_max {self.d_max}")
+        return self
+
+
+def field_from_posterior(table: Any) -> MapField:
+    """The map field of a ``map_posterior.parquet`` table (one row)."""
+    from stages.slam import hilbert_map as hm
+
+    row = {c: table[c][0].as_py() for c in table.column_names}
+    M = int(row["M"])
+    kind: hm.BasisKind = "circular" if row.get("basis_kind") == "circular" else "tensor"
+    basis = hm.make_basis((row["L1"], row["L2"]), (row["cx"], row["cy"]), M, kind)
+    theta = np.asarray(row["theta"], np.float64)
+    cov = np.asarray(row["cov"], np.float64).reshape(M, M)
+    lengthscale_m = float(row["lengthscale"]) * float(row.get("length_unit_m") or 1.0)
+    prior_diag = hm.prior_variances(basis, lengthscale_m, float(row["signal_variance"]))
+    return MapField(basis, theta, cov, prior_diag)
+
+
+def grid_axes(lo: F64, hi: F64, spacing: float) -> tuple[F64, F64]:
+    """Cell-centre coordinates of a grid covering [lo, hi]."""
+    return (np.arange(lo[0] + spacing / 2, hi[0], spacing), np.arange(lo[1] + spacing / 2, hi[1], spacing))
+
+
+def nearest_free(blocked: npt.NDArray[np.bool_], cell: tuple[int, int]) -> tuple[int, int] | None:
+    """The free cell closest to ``cell`` (Euclidean in cells), or None when all are blocked."""
+    free = np.argwhere(~blocked)
+    if len(free) == 0:
+        return None
+    i = int(np.argmin(np.sum((free - np.asarray(cell)) ** 2, axis=1)))
+    return int(free[i, 0]), int(free[i, 1])
+
+
+def default_endpoints(xy: F64) -> tuple[F64, F64]:
+    """The first trajectory position and the one farthest from it."""
+    if len(xy) == 0:
+        raise ValueError("empty trajectory")
+    start = xy[0]
+    return start, xy[int(np.argmax(np.linalg.norm(xy - start, axis=1)))]
+
 
 class PlanStage(Stage):
     name = "plan"
     description = "A* plus continuous refinement on the Hilbert map (RICH-SLAM Sec. V-D)"
-    inputs = ('slam',)
+    inputs = ("slam",)
     Params = PlanParams
-    outputs = ('paths.parquet',)
-    implemented = False
+    version = "1"
+    outputs = ("paths.parquet",)
 
     def run(self, ctx: StageContext) -> None:
-        raise UserError("stage 'plan' is not implemented yet")
+        p: PlanParams = ctx.params
+        field = field_from_posterior(read_artifact(ctx.input("slam", "map_posterior.parquet"), "map_posterior"))
+        lo = field.lo + p.domain_margin
+        hi = field.hi - p.domain_margin
+        if np.any(hi - lo <= 2 * p.grid_spacing):
+            raise UserError(f"plan.domain_margin={p.domain_margin}: leaves no room inside the Hilbert domain "
+                            f"{field.lo.round(2).tolist()}..{field.hi.round(2).tolist()}")
+        t0 = time.perf_counter()
+        gx, gy = grid_axes(lo, hi, p.grid_spacing)
+        pts = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
+        vals = field.values(pts, gradients=False)
+        shape = (len(gx), len(gy))
+        occ = vals.o.reshape(shape)
+        blocked = occ > p.o_max
+        ctx.stats["grid"] = {"cells": int(blocked.size), "blocked": int(blocked.sum()), "spacing": p.grid_spacing}
+
+        start, goal = self._endpoints(ctx, p)
+        cells = {}
+        for name, xy in (("start", start), ("goal", goal)):
+            if np.any(xy < lo) or np.any(xy > hi):
+                raise UserError(f"plan.{name}={np.round(xy, 3).tolist()}: outside the planning domain "
+                                f"{np.round(lo, 2).tolist()}..{np.round(hi, 2).tolist()}; pick a point inside")
+            c = (int(np.argmin(np.abs(gx - xy[0]))), int(np.argmin(np.abs(gy - xy[1]))))
+            if blocked[c]:
+                free = nearest_free(blocked, c)
+                if free is None:
+                    raise UserError(f"plan.o_max={p.o_max}: every grid cell is an obstacle; raise o_max")
+                ctx.warn(f"{name} {np.round(xy, 2).tolist()} lies in an obstacle cell (occupancy "
+                         f"{occ[c]:.2f} > o_max {p.o_max}); moved to the nearest free cell")
+                c = free
+                xy = np.array([gx[c[0]], gy[c[1]]])
+            cells[name] = (c, np.asarray(xy, np.float64))
+        ctx.stats["start"], ctx.stats["goal"] = cells["start"][1].tolist(), cells["goal"][1].tolist()
+
+        rows: dict[str, list[Any]] = {"strategy": [], "k": [], "x": [], "y": [], "z_hat": [], "u": [], "occupancy": []}
+        paths: dict[str, F64] = {}
+        for strategy in p.strategies:
+            cs, _ = strategy_cost(vals, strategy, p.eps)
+            cgrid = cs.reshape(shape)
+            # eq. 34 per unit length: alpha + beta c / waypoint_spacing; shift so that every cell is >= 0
+            shifted = cgrid - cgrid[~blocked].min()
+            cell_cost = shifted * (p.beta / p.alpha / p.waypoint_spacing) if p.alpha > 0 else shifted
+            ts = time.perf_counter()
+            cell_path, _ = astar(blocked, cells["start"][0], cells["goal"][0], cell_cost)
+            if not cell_path:
+                raise UserError(f"plan: no collision-free path from {cells['start'][1].round(2).tolist()} to "
+                                f"{cells['goal'][1].round(2).tolist()} with o_max={p.o_max}; raise plan.o_max "
+                                "or choose other plan.start / plan.goal")
+            idx = np.asarray(cell_path)
+            poly = np.stack([gx[idx[:, 0]], gy[idx[:, 1]]], 1)
+            poly[0], poly[-1] = cells["start"][1], cells["goal"][1]
+            init = resample_polyline(poly, p.waypoint_spacing)
+            t_astar = time.perf_counter() - ts
+            prob = PlanProblem(field, strategy, p.alpha, p.beta, p.eps, p.d_max, p.o_max, lo, hi)
+            res = refine(prob, init, max_iter=p.max_iter)
+            paths[f"astar_{strategy}"] = init
+            paths[strategy] = res.path
+            ctx.stats[strategy] = {
+                "waypoints": len(res.path), "astar_seconds": round(t_astar, 3),
+                "refine_iterations": res.iterations, "refined": res.accepted, "message": res.message,
+                "initial_cost": res.initial_cost, "cost": res.cost,
+                "length_m": float(np.linalg.norm(np.diff(res.path, axis=0), axis=1).sum()),
+                "astar_length_m": float(np.linalg.norm(np.diff(init, axis=0), axis=1).sum()),
+                "violations": prob.violations(res.path),
+            }
+            if not res.accepted:
+                ctx.warn(f"{strategy}: {res.message}")
+        for name, path in paths.items():
+            v = field.values(path, gradients=False)
+            rows["strategy"] += [name] * len(path)
+            rows["k"] += list(range(len(path)))
+            rows["x"] += path[:, 0].tolist()
+            rows["y"] += path[:, 1].tolist()
+            rows["z_hat"] += v.z.tolist()
+            rows["u"] += v.u.tolist()
+            rows["occupancy"] += v.o.tolist()
+        write_artifact({k: np.asarray(v) for k, v in rows.items()}, ctx.output("paths.parquet"), "paths")
+        ctx.stats["seconds"] = round(time.perf_counter() - t0, 3)
+
+        from stages.plan.figures import plot_plan
+
+        u_prior = _prior_variance(field, pts)
+        norm_u = (vals.u / np.maximum(u_prior, 1e-300)).reshape(shape)
+        plot_plan(ctx.output("plan.png"), gx, gy, occ, norm_u, paths, cells["start"][1], cells["goal"][1],
+                  title=f"{ctx.seq.name}: planning on the Hilbert map (o_max {p.o_max})")
+        self._log(ctx, paths)
+
+    def _endpoints(self, ctx: StageContext, p: PlanParams) -> tuple[F64, F64]:
+        if p.start is not None and p.goal is not None:
+            return np.asarray(p.start, np.float64), np.asarray(p.goal, np.float64)
+        t = read_artifact(ctx.input("slam", "trajectory.parquet"), "trajectory", columns=["x", "y"])
+        xy = np.stack([t["x"].to_numpy(), t["y"].to_numpy()], 1)
+        if len(xy) == 0:
+            raise UserError(f"{ctx.input('slam', 'trajectory.parquet')}: empty trajectory; set plan.start and "
+                            "plan.goal")
+        s, _ = default_endpoints(xy)
+        start = np.asarray(p.start, np.float64) if p.start is not None else s
+        goal = np.asarray(p.goal, np.float64) if p.goal is not None else default_endpoints(
+            np.vstack([start, xy]))[1]
+        return start, goal
+
+    def _log(self, ctx: StageContext, paths: dict[str, F64]) -> None:
+        import rerun as rr
+
+        colours = {"greedy": (220, 40, 40), "uncertainty": (150, 60, 200)}
+        for name, path in paths.items():
+            base = name.removeprefix("astar_")
+            col = colours.get(base, (200, 200, 200))
+            if name.startswith("astar_"):
+                col = tuple(int(0.5 * c + 100) for c in col)  # type: ignore[assignment]
+            xyz = np.column_stack([path, np.zeros(len(path))]).astype(np.float32)
+            ctx.recording.log(f"world/plan/{name}", rr.LineStrips3D([xyz], colors=[col], radii=0.03), static=True)
+
+
+def _prior_variance(field: MapField, pts: F64) -> F64:
+    """Prior latent variance ``Phi^T Lambda Phi`` at points: the normaliser of the uncertainty panel."""
+    from stages.slam import hilbert_map as hm
+
+    if field.prior_diag is None:
+        return np.full(len(pts), np.nan)
+    return np.asarray(hm.prior_variance_at(field.basis, field.prior_diag, pts))
 
 
 STAGE = PlanStage()

@@ -1,0 +1,168 @@
+"""The evaluation figures (matplotlib, Agg): RICH-SLAM Fig. 6, 7-style maps, 10, 11 and an RMap top view."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+F64 = npt.NDArray[np.float64]
+
+METHOD_COLOURS = {
+    "odometry": "tab:orange", "fastslam_grid": "tab:green", "rich_slam": "tab:red",
+    "rich_slam_no_et": "tab:purple", "hilbert_gp": "tab:red", "rff": "tab:blue", "sparse": "tab:green",
+    "nystrom": "tab:orange", "grid": "tab:gray",
+}
+METHOD_LABELS = {
+    "odometry": "odometry", "fastslam_grid": "FastSLAM (grid)", "rich_slam": "RICH-SLAM",
+    "rich_slam_no_et": "RICH-SLAM w/o ET", "hilbert_gp": "HILBERT-GP (Kalman)", "rff": "RFF (SGD)",
+    "sparse": "SPARSE (SGD)", "nystrom": "NYSTRÖM (SGD)", "grid": "count grid",
+}
+
+
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def colour(method: str) -> str:
+    return METHOD_COLOURS.get(method, "black")
+
+
+def label(method: str) -> str:
+    return METHOD_LABELS.get(method, method)
+
+
+def plot_trajectories(path: Path, gt_xy: F64, estimates: Mapping[str, F64], title: str = "") -> Path:
+    """Fig. 11: aligned trajectories over ground truth; circles at the start, squares at the end."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 6), constrained_layout=True)
+    ax.plot(gt_xy[:, 0], gt_xy[:, 1], "-", color="black", lw=2.0, label="ground truth")
+    ax.plot(*gt_xy[0], "o", color="black", ms=8, mfc="none")
+    ax.plot(*gt_xy[-1], "s", color="black", ms=8, mfc="none")
+    for name, xy in estimates.items():
+        c = colour(name)
+        ax.plot(xy[:, 0], xy[:, 1], "-", color=c, lw=1.2, label=label(name))
+        ax.plot(*xy[0], "o", color=c, ms=7, mfc="none")
+        ax.plot(*xy[-1], "s", color=c, ms=7, mfc="none")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title or "trajectories after SE(2) alignment on the first matched frames")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_auc_vs_features(path: Path, rows: Sequence[tuple[str, int, float, float]], title: str = "",
+                         reference: Mapping[str, float] | None = None) -> Path:
+    """Fig. 6: AUC against the number of map features; rows are (method, features, mean, std).
+
+    ``reference`` draws horizontal lines for feature-free methods (the count grid).
+    """
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 4.2), constrained_layout=True)
+    methods = list(dict.fromkeys(r[0] for r in rows))
+    for m in methods:
+        sel = sorted((r for r in rows if r[0] == m), key=lambda r: r[1])
+        x = np.array([r[1] for r in sel], float)
+        y = np.array([r[2] for r in sel])
+        s = np.array([r[3] for r in sel])
+        ax.plot(x, y, "o-", color=colour(m), label=label(m))
+        if np.any(s > 0):
+            ax.fill_between(x, y - s, y + s, color=colour(m), alpha=0.15)
+    for m, v in (reference or {}).items():
+        ax.axhline(v, color=colour(m), ls=":", label=label(m))
+    ax.set_xlabel("number of map features")
+    ax.set_ylabel("AUC (held-out scans)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title or "occupancy AUC vs map features")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_map_pair(path: Path, gx: F64, gy: F64, occupancy: F64, norm_u: F64, title: str,
+                  trajectory: F64 | None = None, endpoints: F64 | None = None) -> Path:
+    """A Hilbert-GP map: occupancy (eq. 28) and normalised predictive uncertainty (eq. 33 / prior)."""
+    plt = _plt()
+    extent = (gx[0], gx[-1], gy[0], gy[-1])
+    aspect = (gy[-1] - gy[0]) / max(gx[-1] - gx[0], 1e-9)
+    fig, axes = plt.subplots(1, 2, figsize=(12, max(3.5, 5.5 * aspect) + 0.6), constrained_layout=True)
+    for ax, img, cmap, lab in ((axes[0], occupancy, "viridis", "occupancy probability"),
+                               (axes[1], norm_u, "magma", "normalised predictive uncertainty")):
+        im = ax.imshow(img.T, origin="lower", extent=extent, cmap=cmap, vmin=0, vmax=1, interpolation="nearest")
+        fig.colorbar(im, ax=ax, shrink=0.8, label=lab)
+        if trajectory is not None:
+            ax.plot(trajectory[:, 0], trajectory[:, 1], "-", color="tab:red", lw=1.0)
+        if endpoints is not None and ax is axes[0]:
+            ax.plot(endpoints[:, 0], endpoints[:, 1], ".", color="white", ms=1.0, alpha=0.5)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+    fig.suptitle(title)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_uncertainty(path: Path, curves: Mapping[str, F64], title: str = "") -> Path:
+    """Fig. 10 (right): median normalised predictive uncertainty over time with the 25-75 % band.
+
+    ``curves`` maps a label to rows (t_s, p25, p50, p75).
+    """
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 4.0), constrained_layout=True)
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (name, rows) in enumerate(curves.items()):
+        if len(rows) == 0:
+            continue
+        c = cycle[i % len(cycle)]
+        ax.plot(rows[:, 0], rows[:, 2], "-", color=c, label=name)
+        ax.fill_between(rows[:, 0], rows[:, 1], rows[:, 3], color=c, alpha=0.2)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("normalised predictive uncertainty")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title or "predictive uncertainty over the mapped area")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_maps_top(path: Path, clouds: Mapping[str, F64], title: str = "", max_points: int = 60000,
+                  seed: int = 0) -> Path:
+    """Top views of 3D maps (radar, lidar, completed) side by side, coloured by height."""
+    plt = _plt()
+    n = len(clouds)
+    fig, axes = plt.subplots(1, n, figsize=(5.2 * n, 5), constrained_layout=True, squeeze=False)
+    rng = np.random.default_rng(seed)
+    allp = np.concatenate([c for c in clouds.values() if len(c)]) if any(len(c) for c in clouds.values()) else None
+    for ax, (name, pts) in zip(axes[0], clouds.items(), strict=True):
+        if len(pts) > max_points:
+            pts = pts[rng.choice(len(pts), max_points, replace=False)]
+        if len(pts):
+            ax.scatter(pts[:, 0], pts[:, 1], c=pts[:, 2], s=0.3, cmap="viridis")
+        if allp is not None:
+            ax.set_xlim(allp[:, 0].min(), allp[:, 0].max())
+            ax.set_ylim(allp[:, 1].min(), allp[:, 1].max())
+        ax.set_aspect("equal")
+        ax.set_title(f"{name} ({len(clouds[name])} points)")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+    if title:
+        fig.suptitle(title)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
