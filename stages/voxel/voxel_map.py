@@ -188,36 +188,34 @@ class VoxelMap:
             self._integrate_window(free[:, fm], hit[:, hm], t << (tile_bits - BLOCK_BITS), shape, hits_need_free)
 
     @staticmethod
-    def _window_index(
-        keys: IntArray, lo_block: IntArray, nb: IntArray, check: bool
-    ) -> npt.NDArray[np.int64]:
-        """Block-major flat window index (block, then voxel within the block) of (3, N) keys.
-
-        With ``check`` keys outside the window are dropped.
-        """
+    def _raster(keys: IntArray, lo_block: IntArray, nb: IntArray, check: bool) -> npt.NDArray[np.bool_]:
+        """Dense C-order window (x, y, z) marking (3, N) keys, re-laid out block-major as (blocks, 4096)."""
+        sx, sy, sz = (int(v) << BLOCK_BITS for v in nb)
         origin = lo_block << BLOCK_BITS
-        rel = [(keys[i] - origin[i]).astype(np.int32) for i in range(3)]
-        if check:
-            inside = np.ones(keys.shape[1], bool)
-            for i in range(3):
-                inside &= (rel[i] >= 0) & (rel[i] < (int(nb[i]) << BLOCK_BITS))
-            rel = [r[inside] for r in rel]
-        bx, by, bz = (r >> BLOCK_BITS for r in rel)
-        block = (bx * np.int32(nb[1]) + by) * np.int32(nb[2]) + bz
-        local = ((rel[0] & (BLOCK - 1)) << (2 * BLOCK_BITS)) | ((rel[1] & (BLOCK - 1)) << BLOCK_BITS)
-        local |= rel[2] & (BLOCK - 1)
-        return (block.astype(np.int64) << (3 * BLOCK_BITS)) | local
+        if check:  # keys may lie outside the window (or beyond int32): test in int64 first
+            rel64 = keys.astype(np.int64, copy=False) - origin[:, None]
+            inside = np.all((rel64 >= 0) & (rel64 < np.array([sx, sy, sz])[:, None]), axis=0)
+            rel = [rel64[i, inside].astype(np.int32) for i in range(3)]
+        else:
+            k32 = keys.astype(np.int32, copy=False)
+            rel = [k32[i] - np.int32(origin[i]) for i in range(3)]
+        bm = np.zeros(sx * sy * sz, bool)
+        idx = rel[0] * np.int32(sy)
+        idx += rel[1]
+        idx *= np.int32(sz)
+        idx += rel[2]
+        bm[idx] = True
+        bx, by, bz = (int(v) for v in nb)
+        six = bm.reshape(bx, BLOCK, by, BLOCK, bz, BLOCK).transpose(0, 2, 4, 1, 3, 5)
+        return np.ascontiguousarray(six).reshape(bx * by * bz, BLOCK_VOXELS)
 
     def _integrate_window(
         self, free: IntArray, hit: IntArray, lo_block: IntArray, nb: IntArray, hits_need_free: bool
     ) -> None:
         n_blocks = int(np.prod(nb))
-        free_bm = np.zeros((n_blocks, BLOCK_VOXELS), bool)
-        hit_bm = np.zeros((n_blocks, BLOCK_VOXELS), bool)
-        if free.shape[1]:
-            free_bm.reshape(-1)[self._window_index(free, lo_block, nb, check=False)] = True
-        if hit.shape[1]:
-            hit_bm.reshape(-1)[self._window_index(hit, lo_block, nb, check=True)] = True
+        empty = np.zeros((n_blocks, BLOCK_VOXELS), bool)
+        free_bm = self._raster(free, lo_block, nb, check=False) if free.shape[1] else empty
+        hit_bm = self._raster(hit, lo_block, nb, check=True) if hit.shape[1] else empty.copy()
         if hits_need_free:
             hit_bm &= free_bm
         free_bm &= ~hit_bm
