@@ -256,6 +256,37 @@ def simulate(
     out.print(str(path))
 
 
+@app.command()
+def report(
+    seqs: Annotated[str | None, typer.Option("--seqs", "--seq", "-s", help="sequences to compare: a,b,... or globs "
+                                             "('sim_*') over the run folders")] = None,
+    runs_dir: RunsOpt = None,
+    out_file: Annotated[Path | None, typer.Option("--out", help="also write the tables as markdown (and the "
+                                                  "combined metrics as .parquet beside it)")] = None,
+    sweep: Annotated[str | None, typer.Option("--sweep", help="gather a sweep's points (runs/sweeps/NAME) "
+                                              "instead; run sweeps with `python -m pipeline.sweep NAME`")] = None,
+) -> None:
+    """Gather the evaluate results of several runs (or of a sweep) into one comparison table."""
+    from pipeline import report as rep
+
+    runs = runs_dir or default_runs_dir()
+    if sweep is not None:
+        records, title = rep.sweep_records(runs, sweep, seqs), f"Sweep {sweep}"
+        missing: list[str] = []
+    else:
+        if not seqs:
+            raise UserError("--seqs is required (e.g. --seqs demo,sim_hallway_loop), or pass --sweep NAME")
+        records, missing = rep.report_sequences(runs, seqs)
+        title = "Comparison"
+    for t in rep.build_tables(records) if sweep is None else rep.sweep_tables(records):
+        out.print(rep.rich_table(*t))
+    for m in missing:
+        console.print(f"[yellow]note[/] {m}: no evaluation in {runs}; run `pipeline run evaluate --seq {m}`")
+    if out_file is not None:
+        for p in rep.write_outputs(records, out_file, title):
+            out.print(str(p))
+
+
 def main() -> None:
     """Console entry point with the exit-code contract."""
     try:

@@ -1,0 +1,374 @@
+"""Parameter sweeps: ``workflows/sweep_*.toml`` with a ``[sweep]`` table of ``"stage.param" = [values]``.
+
+``expand_sweep`` is a pure function from the ``[sweep]`` table to the list of parameter points (the
+Cartesian product, first key slowest), each an override dict ``{stage: {param: value}}``. Every point
+runs into its own run store ``runs/sweeps/<workflow>/<point>/<seq>/``; stages whose key is the same for
+every point (usually everything upstream of the swept stage) run once in the main run store and are
+hard-linked into the points. The points go through ``pipeline.executors`` (inline by default, a process
+pool or Ray on request). Afterwards the ``evaluate`` metrics of all points are gathered into
+``runs/sweeps/<workflow>/sweep_metrics.parquet`` and the workflow's figure is drawn
+(``[workflow] figure = "auc_vs_features"`` for RICH-SLAM Fig. 6, ``"hyperparameter_grid"`` for Fig. 7).
+
+Run one with ``python -m pipeline.sweep sweep_fig7 --seq demo``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+
+from pipeline.config import Overrides, Workflow, check_param_names, load_workflow, merge_overrides
+from pipeline.errors import UserError
+
+SWEEPS_DIR = "sweeps"
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    """One parameter point: a folder-safe name and its overrides."""
+
+    name: str
+    overrides: Overrides
+
+    def values(self) -> dict[str, Any]:
+        """``{"stage.param": value}``."""
+        return {f"{s}.{k}": v for s, d in self.overrides.items() for k, v in d.items()}
+
+
+def flatten_sweep(sweep: Mapping[str, Any], prefix: str = "") -> dict[str, list[Any]]:
+    """``{"stage.param": values}`` from a ``[sweep]`` table written with quoted or dotted keys."""
+    out: dict[str, list[Any]] = {}
+    for key, value in sweep.items():
+        name = f"{prefix}.{key}" if prefix else str(key)
+        if isinstance(value, Mapping):
+            out.update(flatten_sweep(value, name))
+            continue
+        if name.count(".") != 1:
+            raise UserError(f"[sweep] {name}: expected 'stage.param' = [values]")
+        if not isinstance(value, list) or not value:
+            raise UserError(f"[sweep] {name}: expected a non-empty list of values, got {value!r}")
+        out[name] = list(value)
+    return out
+
+
+def expand_sweep(sweep: Mapping[str, Any]) -> list[Overrides]:
+    """All points of the sweep (Cartesian product, first key varying slowest) as override dicts."""
+    flat = flatten_sweep(sweep)
+    keys = list(flat)
+    points: list[Overrides] = []
+    for combo in itertools.product(*(flat[k] for k in keys)):
+        point: Overrides = {}
+        for key, value in zip(keys, combo, strict=True):
+            stage, param = key.split(".", 1)
+            point.setdefault(stage, {})[param] = value
+        points.append(point)
+    return points
+
+
+def _slug(value: Any) -> str:
+    text = json.dumps(value, separators=(",", ":")) if not isinstance(value, str) else value
+    return re.sub(r"[^A-Za-z0-9.+-]+", "_", text).strip("_") or "x"
+
+
+def point_name(point: Overrides) -> str:
+    """A readable folder name: ``gp_lengthscale=2,gp_signal_variance=16`` (stage prefixes kept when ambiguous)."""
+    params = [(s, k) for s, d in point.items() for k in d]
+    short = [k for _, k in params]
+    parts = []
+    for s, k in params:
+        label = k if short.count(k) == 1 else f"{s}.{k}"
+        parts.append(f"{label}={_slug(point[s][k])}")
+    return ",".join(parts) or "base"
+
+
+def sweep_points(sweep: Mapping[str, Any]) -> list[SweepPoint]:
+    points = [SweepPoint(point_name(p), p) for p in expand_sweep(sweep)]
+    names = [p.name for p in points]
+    if len(set(names)) != len(names):
+        raise UserError("[sweep]: two points get the same folder name; use distinct values")
+    return points
+
+
+def sweep_root(runs_dir: Path, workflow: str) -> Path:
+    return Path(runs_dir) / SWEEPS_DIR / workflow
+
+
+def workflow_meta(wf: Workflow) -> dict[str, Any]:
+    """The ``[workflow]`` table of the file (figure settings live there)."""
+    import tomllib
+
+    if wf.path is None:
+        return {}
+    with wf.path.open("rb") as f:
+        return dict(tomllib.load(f).get("workflow", {}))
+
+
+@dataclass
+class SweepRun:
+    """What a sweep produced."""
+
+    root: Path
+    points: list[SweepPoint]
+    results: list[Any]
+    metrics: Path | None
+    figures: list[Path]
+
+
+def run_sweep(
+    workflow: str, seqs: Sequence[Any], runs_dir: Path, overrides: Overrides | None = None,
+    executor: Any = None, console: Any = None, registry: str = "pipeline.registry:load_stages",
+    force: bool = False,
+) -> SweepRun:
+    """Run every point of ``workflow``'s sweep on ``seqs`` (``SequenceInfo``), gather metrics, draw the figure."""
+    import importlib
+
+    from rich.console import Console
+
+    from pipeline.executors import Executor, RunTask, run_all
+    from pipeline.runner import Runner
+
+    console = console or Console(stderr=True)
+    wf = load_workflow(workflow)
+    if not wf.sweep:
+        raise UserError(f"workflow '{wf.name}' has no [sweep] table ({wf.path})")
+    module, _, func = registry.partition(":")
+    stages = getattr(importlib.import_module(module), func)()
+    points = sweep_points(wf.sweep)
+    for key in flatten_sweep(wf.sweep):
+        stage, param = key.split(".", 1)
+        if stage not in stages:
+            raise UserError(f"[sweep] {key}: unknown stage '{stage}'")
+        check_param_names(stage, {param: None}, stages, f"workflow {wf.path} [sweep]")
+    base = overrides or {}
+    root = sweep_root(runs_dir, wf.name)
+    targets = tuple(wf.stages) or ("all",)
+    # stages with one key across all points run once, in the main run store
+    for info in seqs:
+        runners = [Runner(info, root / p.name, stages, wf, merge_overrides(base, p.overrides), console)
+                   for p in points]
+        plan = runners[0].closure(runners[0].resolve_targets(targets)[0])
+        shared = [s for s in plan if len({r.key(s) for r in runners}) == 1]
+        if shared and len(shared) < len(plan):
+            console.print(f"[bold]{info.name}[/]: shared stages {', '.join(shared)} in {runs_dir}")
+            Runner(info, runs_dir, stages, wf, merge_overrides(base, points[0].overrides), console).run(shared)
+    tasks = [RunTask(info, str(root / p.name), targets, targets if force else (), merge_overrides(base, p.overrides),
+                     str(wf.path or wf.name), (str(runs_dir),), f"{p.name}/{info.name}", registry)
+             for p in points for info in seqs]
+    ex = executor or Executor()
+
+    def done(res: Any) -> None:
+        mark = "[green]ok[/]" if res.ok else f"[red]failed[/]: {(res.error or '').splitlines()[0]}"
+        console.print(f"  {res.name}: {mark} ({res.seconds:.1f} s)")
+
+    console.print(f"sweep {wf.name}: {len(points)} point(s) x {len(seqs)} sequence(s) on the {ex.name} executor")
+    results = run_all(tasks, ex, done)
+    table = gather_sweep(root, points, [s.name for s in seqs])
+    metrics = None
+    figs: list[Path] = []
+    if table is not None:
+        from schemas import write_artifact
+
+        metrics = write_artifact(table, root / "sweep_metrics.parquet", "metrics")
+        figs = plot_sweep(wf, root, points, [s.name for s in seqs], table.to_pylist())
+    return SweepRun(root, points, results, metrics, figs)
+
+
+def gather_sweep(root: Path, points: Sequence[SweepPoint], seqs: Sequence[str], stage: str = "evaluate") -> Any:
+    """One long table of every point's metrics, with ``point`` and ``params`` (JSON) columns; None when empty."""
+    import pyarrow as pa
+
+    from pipeline.report import gather
+
+    cols: dict[str, list[Any]] = {k: [] for k in ("seq", "method", "metric", "value", "features", "section",
+                                                  "point", "params")}
+    for p in points:
+        recs, _ = gather(root / p.name, seqs, stage)
+        params = json.dumps(p.values(), sort_keys=True)
+        for r in recs:
+            for k in ("seq", "method", "metric", "value"):
+                cols[k].append(r[k])
+            cols["features"].append(int(r.get("features") or 0))
+            cols["section"].append(str(r.get("section") or ""))
+            cols["point"].append(p.name)
+            cols["params"].append(params)
+    if not cols["seq"]:
+        return None
+    return pa.table({
+        "seq": pa.array(cols["seq"], pa.string()), "method": pa.array(cols["method"], pa.string()),
+        "metric": pa.array(cols["metric"], pa.string()), "value": pa.array(cols["value"], pa.float64()),
+        "features": pa.array(cols["features"], pa.int32()), "section": pa.array(cols["section"], pa.string()),
+        "point": pa.array(cols["point"], pa.string()), "params": pa.array(cols["params"], pa.string()),
+    })
+
+
+# -- figures ----------------------------------------------------------------------------------------------------
+def auc_by_features(records: Sequence[Mapping[str, Any]],
+                    seq: str | None = None) -> list[tuple[str, int, float, float, int]]:
+    """(method, features, mean, std, n) of ``<method>@<count>`` AUC rows over all points (seeds)."""
+    from stages.evaluate.tables import split_method
+
+    groups: dict[tuple[str, int], list[float]] = {}
+    for r in records:
+        if r["metric"] != "auc" or "@" not in str(r["method"]) or (seq is not None and r["seq"] != seq):
+            continue
+        m, n = split_method(str(r["method"]))
+        groups.setdefault((m, n), []).append(float(r["value"]))
+    return [(m, n, float(np.mean(v)), float(np.std(v)), len(v)) for (m, n), v in sorted(groups.items())]
+
+
+def plot_sweep(wf: Workflow, root: Path, points: Sequence[SweepPoint], seqs: Sequence[str],
+               records: Sequence[Mapping[str, Any]]) -> list[Path]:
+    """The figure named by ``[workflow] figure``; nothing when it names none."""
+    meta = workflow_meta(wf)
+    kind = meta.get("figure")
+    if kind is None:
+        return []
+    if kind == "auc_vs_features":
+        return [plot_auc_vs_features(root / f"{wf.name}.png", records, seqs, wf.description)]
+    if kind == "hyperparameter_grid":
+        return [plot_hyperparameter_grid(root / f"{wf.name}_{seq}.png", root, points, seq,
+                                         str(meta.get("figure_method", "hilbert_gp")), records) for seq in seqs]
+    raise UserError(f"{wf.path}: [workflow] figure = {kind!r}; known: auc_vs_features, hyperparameter_grid")
+
+
+def plot_auc_vs_features(path: Path, records: Sequence[Mapping[str, Any]], seqs: Sequence[str],
+                         title: str = "") -> Path:
+    """Fig. 6: one panel per sequence, AUC (mean and +-1 std over the points) against the feature count."""
+    from stages.evaluate import figures
+
+    plt = figures._plt()
+    n = len(seqs)
+    fig, axes = plt.subplots(1, n, figsize=(5.5 * n, 4.2), squeeze=False, constrained_layout=True, sharey=True)
+    for ax, seq in zip(axes[0], seqs, strict=True):
+        rows = auc_by_features(records, seq)
+        for m in dict.fromkeys(r[0] for r in rows):
+            sel = [r for r in rows if r[0] == m]
+            x = np.array([r[1] for r in sel], float)
+            y = np.array([r[2] for r in sel])
+            s = np.array([r[3] for r in sel])
+            ax.plot(x, y, "o-", color=figures.colour(m), label=figures.label(m))
+            ax.fill_between(x, y - s, y + s, color=figures.colour(m), alpha=0.15)
+        ax.set_title(seq)
+        ax.set_xlabel("number of map features")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("AUC (held-out scans), mean ± std over seeds")
+    axes[0][0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_hyperparameter_grid(path: Path, root: Path, points: Sequence[SweepPoint], seq: str, method: str,
+                             records: Sequence[Mapping[str, Any]]) -> Path:
+    """Fig. 7: the ground-truth-pose map of every point, rows = first swept key, columns = second, AUC in titles."""
+    from schemas import read_artifact
+    from stages.evaluate import figures
+
+    plt = figures._plt()
+    keys = list(points[0].values()) if points else []
+    rows_vals = list(dict.fromkeys(json.dumps(p.values()[keys[0]]) for p in points)) if keys else [""]
+    cols_vals = list(dict.fromkeys(json.dumps(p.values()[keys[1]]) for p in points)) if len(keys) > 1 else [""]
+    auc = {r["point"]: r["value"] for r in records
+           if r["seq"] == seq and r["method"] == method and r["metric"] == "auc"}
+    fig, axes = plt.subplots(len(rows_vals), len(cols_vals), figsize=(4.2 * len(cols_vals), 3.4 * len(rows_vals)),
+                             squeeze=False, constrained_layout=True)
+    im = None
+    for p in points:
+        v = p.values()
+        i = rows_vals.index(json.dumps(v[keys[0]])) if keys else 0
+        j = cols_vals.index(json.dumps(v[keys[1]])) if len(keys) > 1 else 0
+        ax = axes[i][j]
+        grid_path = root / p.name / seq / "evaluate" / "gt_map_grid.parquet"
+        if grid_path.exists():
+            t = read_artifact(grid_path, "map_grid", columns=["x", "y", "occupancy"])
+            x, y, o = (t[c].to_numpy() for c in ("x", "y", "occupancy"))
+            gx, gy = np.unique(x), np.unique(y)
+            img = np.full((len(gx), len(gy)), np.nan)
+            img[np.searchsorted(gx, x), np.searchsorted(gy, y)] = o
+            im = ax.imshow(img.T, origin="lower", extent=(gx[0], gx[-1], gy[0], gy[-1]), cmap="viridis",
+                           vmin=0, vmax=1, interpolation="nearest")
+        else:
+            ax.text(0.5, 0.5, "no map", ha="center", va="center", transform=ax.transAxes)
+        label = ", ".join(f"{k.split('.', 1)[1]}={val}" for k, val in v.items())
+        a = auc.get(p.name)
+        ax.set_title(label + (f"\nAUC {a:.3f}" if a is not None else ""), fontsize=9)
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+    if im is not None:
+        fig.colorbar(im, ax=axes, shrink=0.6, label="occupancy probability")
+    fig.suptitle(f"{seq}: {method} maps on ground-truth poses", fontsize=11)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def summary_rows(records: Sequence[Mapping[str, Any]], metric: str = "auc") -> list[list[str]]:
+    """(seq, point, method, value) rows of one metric, for printing."""
+    from stages.evaluate.tables import fmt
+
+    return [[str(r["seq"]), str(r["point"]), str(r["method"]), fmt(float(r["value"]))]
+            for r in records if r["metric"] == metric]
+
+
+# -- command line ----------------------------------------------------------------------------------------------
+def main() -> None:
+    """``python -m pipeline.sweep WORKFLOW --seq SEQ``: run a sweep and draw its figure."""
+    import sys
+
+    import typer
+    from rich.console import Console
+
+    from pipeline.paths import default_runs_dir
+
+    console = Console(stderr=True)
+
+    def command(
+        workflow: Annotated[str, typer.Argument(help="a sweep workflow in workflows/ (e.g. sweep_fig7) or a .toml")],
+        seq: Annotated[str, typer.Option("--seq", "-s", help="sequence name, list (a,b) or glob")] = "demo",
+        set_: Annotated[list[str] | None, typer.Option("--set", help="extra STAGE.PARAM=VALUE for every point")] = None,
+        runs_dir: Annotated[Path | None, typer.Option("--runs-dir", help="run store (default ./runs)")] = None,
+        executor: Annotated[str | None, typer.Option("--executor", help="local (process pool) or ray; "
+                                                     "default: in this process, one point after another")] = None,
+        workers: Annotated[int | None, typer.Option("--workers", help="parallel points")] = None,
+        force: Annotated[bool, typer.Option("--force", help="rerun the workflow's stages at every point")] = False,
+    ) -> None:
+        from pipeline.config import parse_set
+        from pipeline.executors import make_executor
+        from pipeline.registry import load_stages
+        from pipeline.sequences import expand_sequences, load_registry
+
+        overrides = parse_set(set_ or [], load_stages())
+        seqs = expand_sequences(seq, load_registry())
+        ex = make_executor(executor, workers) if executor else None
+        res = run_sweep(workflow, seqs, runs_dir or default_runs_dir(), overrides, ex, console, force=force)
+        failed = [r for r in res.results if not r.ok]
+        console.print(f"sweep folder: {res.root}")
+        if res.metrics is not None:
+            console.print(f"metrics: {res.metrics}")
+        for f in res.figures:
+            console.print(f"figure: {f}")
+        if failed:
+            raise typer.Exit(1 if any(r.error_kind == "bug" for r in failed) else 2)
+
+    app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+    app.command()(command)
+    try:
+        app(standalone_mode=False)
+    except UserError as exc:
+        console.print(f"[bold red]error:[/] {exc}", soft_wrap=True, highlight=False)
+        sys.exit(2)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+
+
+if __name__ == "__main__":
+    main()
