@@ -286,3 +286,24 @@ def test_manifest_fallbacks_read_the_slam_parameters(tmp_path: Path) -> None:
     man.write_text(json.dumps(d))
     ctx = make_context(runs, "synth", "evaluate", EvaluateParams(), ["slam"], tmp_path / "o")
     assert STAGE._slam_params(ctx)["max_range"] == 3.0
+
+
+def test_each_fit_has_its_own_random_stream() -> None:
+    """rff@16 is the same number whether or not other fits ran in the same call (sweeps rely on it)."""
+    from stages.evaluate.mapping import BaselineConfig, GPConfig, auc_suite
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-4, 4, (1500, 2))
+    lab = np.where(np.abs(np.linalg.norm(pts, axis=1) - 2.5) < 0.4, 1.0, -1.0)
+    scan = np.sort(rng.integers(0, 60, 1500))
+    s = LabelledSamples(pts, lab, scan)
+    train, test = s.select(scan % 5 != 0), s.select(scan % 5 == 0)
+    gp = GPConfig((5.0, 5.0), (0.0, 0.0), 1.0, 4.0, 0.36)
+    base = BaselineConfig(1.0)
+    alone = auc_suite(train, test, gp, base, [16], ["rff", "nystrom"], seed=3)
+    both = auc_suite(train, test, gp, base, [36, 16], ["sparse", "nystrom", "rff"], seed=3)
+    pick = {(r.method, r.features): r.auc for r in both}
+    for r in alone:
+        assert pick[(r.method, r.features)] == r.auc
+    other_seed = auc_suite(train, test, gp, base, [16], ["rff"], seed=4)
+    assert other_seed[0].auc != pick[("rff", 16)]

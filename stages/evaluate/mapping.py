@@ -109,6 +109,11 @@ def _predict_chunked(fn: Callable[[F64], F64], points: F64, chunk: int = 8192) -
     return np.concatenate([fn(points[s : s + chunk]) for s in range(0, len(points), chunk)])
 
 
+def method_rng(seed: int, method: str, dim: int) -> np.random.Generator:
+    """The random stream of one (method, feature count): independent of which other fits ran."""
+    return np.random.default_rng([seed, METHODS.index(method), dim])
+
+
 def fit_baseline(
     kind: baselines.BaselineKind, dim: int, train: LabelledSamples, lo: F64, hi: F64,
     cfg: BaselineConfig, rng: np.random.Generator,
@@ -137,13 +142,14 @@ class AucRow:
 
 def auc_suite(
     train: LabelledSamples, test: LabelledSamples, gp: GPConfig, base: BaselineConfig,
-    counts: Sequence[int], methods: Sequence[str], rng: np.random.Generator,
+    counts: Sequence[int], methods: Sequence[str], seed: int,
     on_fit: Callable[[str, int], None] | None = None,
 ) -> list[AucRow]:
     """AUC on the held-out samples for every method at every feature count (Fig. 6).
 
     HILBERT-GP scores with the posterior-predictive occupancy (eq. 28); the baselines with their
-    logistic probability; the grid with ``hits / (hits + frees)``.
+    logistic probability; the grid with ``hits / (hits + frees)``. Each random feature map draws from
+    its own stream (``method_rng``), so a result does not depend on the other fits of the call.
     """
     lo = np.asarray(gp.centre) - np.asarray(gp.half_widths)
     hi = np.asarray(gp.centre) + np.asarray(gp.half_widths)
@@ -161,7 +167,8 @@ def auc_suite(
                 fit = fit_hilbert_gp(train, gp, dim)
                 score = np.asarray(fit.query(test.points)[2], np.float64)
             elif method in ("rff", "sparse", "nystrom"):
-                fmap, lm = fit_baseline(method, dim, train, lo, hi, base, rng)  # type: ignore[arg-type]
+                fmap, lm = fit_baseline(method, dim, train, lo, hi, base,  # type: ignore[arg-type]
+                                        method_rng(seed, method, dim))
 
                 def proba(p: F64, fmap: baselines.FeatureMap = fmap, lm: baselines.LogisticModel = lm) -> F64:
                     return lm.predict_proba(fmap(p))

@@ -172,9 +172,10 @@ class EvaluateStage(Stage):
             files.append(("odometry", odo / "odometry.parquet", "odometry"))
         slam = ctx.input_dirs.get("slam")
         if slam is not None:
-            named = sorted(slam.glob("trajectory_*.parquet"))
-            for f in named:
-                files.append((f.stem.removeprefix("trajectory_"), f, "trajectory"))
+            for f in sorted(slam.glob("trajectory_*.parquet")):
+                method = f.stem.removeprefix("trajectory_")
+                if all(m != method for m, _, _ in files):  # the odometry stage's file wins over a copy
+                    files.append((method, f, "trajectory"))
             if not any(m == "rich_slam" for m, _, _ in files) and (slam / "trajectory.parquet").exists():
                 files.append(("rich_slam", slam / "trajectory.parquet", "trajectory"))
         return files
@@ -284,14 +285,13 @@ class EvaluateStage(Stage):
             with ctx.progress(len(np.unique(train.scan)), f"HILBERT-GP M={M} (Kalman, ground-truth poses)") as adv:
                 fit = mp.fit_hilbert_gp(train, gp_cfg, M, track, p.uncertainty_every, on_scan=adv)
         if "mapping" in p.sections:
-            self._auc(ctx, mp, train, test, gp_cfg, fit if p.headline else None, M, rng)
+            self._auc(ctx, mp, train, test, gp_cfg, fit if p.headline else None, M)
             if fit is not None and p.headline:
                 self._gt_map(ctx, fit, gp_cfg, lo, hi, gt, interp, train)
         if "uncertainty" in p.sections and fit is not None:
             self._uncertainty(ctx, fit, t_scan, gt)
 
-    def _auc(self, ctx: StageContext, mp: Any, train: Any, test: Any, gp_cfg: Any, fit: Any, M: int,
-             rng: np.random.Generator) -> None:
+    def _auc(self, ctx: StageContext, mp: Any, train: Any, test: Any, gp_cfg: Any, fit: Any, M: int) -> None:
         """AUC rows: ``<method>@<count>`` per feature count, ``<method>`` at the slam's M (``fit`` given)."""
         from stages.evaluate.occupancy import roc_auc
 
@@ -311,11 +311,11 @@ class EvaluateStage(Stage):
                     hg_counts.remove(M)
                     adv(1)
                 if hg_counts:
-                    rows += mp.auc_suite(train, test, gp_cfg, base, hg_counts, ["hilbert_gp"], rng,
+                    rows += mp.auc_suite(train, test, gp_cfg, base, hg_counts, ["hilbert_gp"], p.seed,
                                          on_fit=lambda *_: adv(1))
             rest = [m for m in p.methods if m != "hilbert_gp"]
             if rest and (counts or "grid" in rest):
-                rows += mp.auc_suite(train, test, gp_cfg, base, counts, rest, rng, on_fit=lambda *_: adv(1))
+                rows += mp.auc_suite(train, test, gp_cfg, base, counts, rest, p.seed, on_fit=lambda *_: adv(1))
         fig_rows = []
         ref: dict[str, float] = {}
         for r in rows:
@@ -478,7 +478,8 @@ class EvaluateStage(Stage):
 
         for r in recs:
             if np.isfinite(r["value"]):
-                ctx.recording.log(f"metrics/{r['method']}/{r['metric']}", rr.Scalars([r["value"]]), static=True)
+                method = r["method"].replace("@", "/features_")  # rff@64 -> metrics/rff/features_64/auc
+                ctx.recording.log(f"metrics/{method}/{r['metric']}", rr.Scalars([r["value"]]), static=True)
         ctx.stats["metrics"] = len(recs)
 
 
