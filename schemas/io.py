@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import uuid
 from collections.abc import Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -152,8 +153,9 @@ class ArtifactWriter:
     """Stream an artifact to Parquet in row-group batches (bounded memory), then rename it into place.
 
     ``extra`` declares columns beyond the schema's required ones (their types must be fixed up front).
-    Rows are buffered until ``batch_rows`` and written as one row group; the schema metadata matches
-    :func:`write_artifact`, so :func:`read_artifact` accepts the file.
+    Rows are buffered until ``batch_rows`` and written as one row group by a background thread (Arrow
+    compresses without the GIL, so writing overlaps the caller's work; at most one batch is in flight).
+    The schema metadata matches :func:`write_artifact`, so :func:`read_artifact` accepts the file.
     """
 
     def __init__(
@@ -162,7 +164,7 @@ class ArtifactWriter:
         schema: str | ArtifactSchema,
         extra: Sequence[pa.Field] = (),
         metadata: Mapping[str, str] | None = None,
-        batch_rows: int = 1 << 20,
+        batch_rows: int = 1 << 18,
     ) -> None:
         self.art = _schema(schema)
         self.path = Path(path)
@@ -172,9 +174,11 @@ class ArtifactWriter:
         self.schema = pa.schema([*self.art.schema, *extra], metadata=meta)
         self.batch_rows = int(batch_rows)
         self.rows = 0
-        self._buf: list[pa.Table] = []
+        self._buf: list[list[Any]] = []
         self._buffered = 0
         self._tmp = self.path.with_name(f".{self.path.name}.{uuid.uuid4().hex[:8]}.tmp")
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"write-{self.art.name}")
+        self._pending: Future[None] | None = None
         float_cols = [f.name for f in self.schema if pa.types.is_floating(f.type)]
         self._writer: pq.ParquetWriter | None = pq.ParquetWriter(
             self._tmp,
@@ -185,24 +189,36 @@ class ArtifactWriter:
         )
 
     def write(self, columns: Mapping[str, Any]) -> None:
-        """Append rows given as equal-length columns (cast to the declared types)."""
-        arrays = [pa.array(np.asarray(columns[f.name]), type=f.type) for f in self.schema]
-        table = pa.Table.from_arrays(arrays, schema=self.schema)
-        if table.num_rows == 0:
+        """Append rows given as equal-length columns (cast to the declared types when flushed)."""
+        arrays = [np.asarray(columns[f.name]) for f in self.schema]
+        n = len(arrays[0]) if arrays else 0
+        if any(len(a) != n for a in arrays):
+            raise ValueError(f"{self.path}: columns of unequal length in one write")
+        if n == 0:
             return
-        self._buf.append(table)
-        self._buffered += table.num_rows
+        self._buf.append(arrays)
+        self._buffered += n
         if self._buffered >= self.batch_rows:
             self.flush()
 
     def flush(self) -> None:
+        """Hand the buffered rows to the writer thread (waiting for the previous batch first)."""
         if not self._buf or self._writer is None:
             return
-        table = pa.concat_tables(self._buf)
+        cols = [np.concatenate([b[i] for b in self._buf]) for i in range(len(self.schema))]
         self._buf, self._buffered = [], 0
+        table = pa.Table.from_arrays([pa.array(c, type=f.type) for c, f in zip(cols, self.schema, strict=True)],
+                                     schema=self.schema)
         validate_table(table, self.art, str(self.path))
-        self._writer.write_table(table, row_group_size=max(self.batch_rows, table.num_rows))
+        self._wait()
+        self._pending = self._pool.submit(self._writer.write_table, table,
+                                          row_group_size=max(self.batch_rows, table.num_rows))
         self.rows += table.num_rows
+
+    def _wait(self) -> None:
+        if self._pending is not None:
+            pending, self._pending = self._pending, None
+            pending.result()
 
     def close(self) -> Path:
         """Write the remaining rows and move the file into place."""
@@ -210,15 +226,22 @@ class ArtifactWriter:
             return self.path
         try:
             self.flush()
+            self._wait()
             self._writer.close()
             self._writer = None
             os.replace(self._tmp, self.path)
         finally:
+            self._pool.shutdown(wait=True)
             self._tmp.unlink(missing_ok=True)
         return self.path
 
     def abort(self) -> None:
         """Discard the partial file."""
+        try:
+            self._wait()
+        except Exception:  # the file is discarded anyway
+            pass
+        self._pool.shutdown(wait=True)
         if self._writer is not None:
             self._writer.close()
             self._writer = None

@@ -45,7 +45,7 @@ class IngestParams(StageParams):
     lidar_intensity_field: str = Field("", description="PointCloud2 field holding the lidar intensity")
     doppler_sign: float | None = Field(None, description="override the profile's Doppler sign factor")
     reorder_window: int = Field(16, ge=1, description="messages re-sorted by stamp per stream (out-of-order)")
-    batch_rows: int = Field(1_000_000, ge=1000, description="rows per Parquet row group (bounds memory)")
+    batch_rows: int = Field(262_144, ge=1000, description="rows per Parquet row group (bounds memory)")
     rerun_radar_every: int = Field(1, ge=1, description="log every n-th raw radar scan to Rerun")
     rerun_lidar_every: int = Field(10, ge=1, description="log every n-th lidar scan to Rerun")
     rerun_lidar_points: int = Field(2000, ge=1, description="random points kept per logged lidar scan")

@@ -11,8 +11,8 @@ Propagation (zero-order hold of each IMU sample, world gravity g = (0, 0, -|g|))
 Measurement (radar velocity in the radar frame; extrinsic imu <- radar = (R_ir, t_ir)):
 ``v_r = R_ir^T (R^T v + w x t_ir)`` with ``H_v = R_ir^T R^T``, ``H_theta = R_ir^T [R^T v]x``,
 ``H_bg = R_ir^T [t_ir]x``; a chi-square gate rejects outliers. Scans the estimator marks as zero
-velocity also give a zero-angular-rate update (``w_m - b_g = 0``), which makes the gyro bias observable
-whenever the platform stands still.
+velocity for at least ``zero_rate_min_scans`` scans in a row also give a zero-angular-rate update
+(``w_m - b_g = 0``), which makes the gyro bias observable whenever the platform stands still.
 """
 
 from __future__ import annotations
@@ -58,6 +58,7 @@ class EkfConfig:
     gate_probability: float = 0.999
     zero_rate_update: bool = True
     zero_rate_sigma: float = 0.002
+    zero_rate_min_scans: int = 5
     init_motion_compensation: bool = True
 
 
@@ -206,6 +207,12 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
     ekf = EkfRio(cfg, R0, R0 @ v_imu)
     chi_rows = {3: np.arange(3), 2: np.arange(2), 0: np.arange(3)}
     n_upd = n_rej = n_zaru = 0
+    # standstill runs: a zero-rate update needs this many consecutive zero-velocity scans (a slow creep can pass
+    # the Doppler zero-velocity test while the platform still turns)
+    zero = valid & (np.asarray(dims) == 0)
+    run_len = np.zeros(S, np.int64)
+    for i in range(S):
+        run_len[i] = (run_len[i - 1] + 1 if i else 1) if zero[i] else 0
     tc = int(t0)
     N = len(imu_t)
     for s in range(S):
@@ -236,7 +243,7 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
             else:
                 n_rej += 1
                 out.rejected[s] = True
-            if cfg.zero_rate_update and int(dims[s]) == 0 and g_dt > 0:
+            if cfg.zero_rate_update and run_len[s] >= cfg.zero_rate_min_scans and g_dt > 0:
                 n_zaru += int(ekf.update_zero_rate(g_sum / g_dt, cfg.zero_rate_sigma))
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = ekf.R, ekf.p

@@ -6,8 +6,9 @@ interpolated at the radar scan times. Either way the output is world <- base as 
 
 Anchoring: the filter runs in its own gravity-aligned frame with zero initial yaw. With ``anchor =
 "groundtruth"`` (default) the planar trajectory is moved rigidly so that its first pose equals the
-ground-truth pose at that time (so odometry, SLAM and ground truth share one world frame); without
-ground truth, or with ``anchor = "origin"``, the first pose is (0, 0, 0). Nothing else uses ground truth.
+ground-truth pose at that time (the first scan that ground truth covers, if it starts later), so
+odometry, SLAM and ground truth share one world frame; without ground truth, or with ``anchor =
+"origin"``, the first pose is (0, 0, 0). Nothing else uses ground truth.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ class OdometryParams(StageParams):
     gate_probability: float = Field(0.999, gt=0, lt=1, description="chi-square gate of the velocity update")
     zero_rate_update: bool = Field(True, description="zero angular-rate update on zero-velocity scans")
     zero_rate_sigma: float = Field(0.002, gt=0, description="std of the zero angular-rate pseudo-measurement, rad/s")
+    zero_rate_min_scans: int = Field(5, ge=1, description="consecutive zero-velocity scans before a zero-rate update")
     init_motion_compensation: bool = Field(
         True, description="remove the kinematic acceleration (from the first ego-velocities) before gravity alignment")
 
@@ -85,13 +87,16 @@ class OdometryStage(Stage):
         first = int(np.argmax(valid)) if valid.any() else 0
         anchored = "origin"
         if len(scan_t):
-            if p.anchor == "groundtruth" and len(gt_t) and inside[first]:
-                ref = T_gt[first]
-                x, y, yaw = se2_compose_anchor(x, y, yaw, first, ref[0, 3], ref[1, 3], float(yaw_of(ref[:3, :3])))
+            with_gt = valid & inside
+            if p.anchor == "groundtruth" and with_gt.any():
+                at = int(np.argmax(with_gt))  # first estimated pose that ground truth covers
+                ref = T_gt[at]
+                x, y, yaw = se2_compose_anchor(x, y, yaw, at, ref[0, 3], ref[1, 3], float(yaw_of(ref[:3, :3])))
                 anchored = "groundtruth"
+                ctx.stats["anchor_scan"] = int(scans[at])
             else:
                 if p.anchor == "groundtruth":
-                    ctx.warn("no ground truth at the first odometry pose: anchored at the origin instead")
+                    ctx.warn("no ground truth during the odometry: anchored at the origin instead")
                 x, y, yaw = se2_compose_anchor(x, y, yaw, first, 0.0, 0.0, 0.0)
         write_artifact({"scan": scans.astype(np.int32), "t_ns": scan_t, "x": x, "y": y, "yaw": yaw,
                         "valid": valid}, ctx.output("odometry.parquet"), "odometry",
@@ -141,6 +146,7 @@ class OdometryStage(Stage):
             velocity_cov_scale=p.velocity_cov_scale, velocity_sigma=p.velocity_sigma_mps,
             use_estimator_covariance=p.use_estimator_covariance, gate_probability=p.gate_probability,
             zero_rate_update=p.zero_rate_update, zero_rate_sigma=p.zero_rate_sigma,
+            zero_rate_min_scans=p.zero_rate_min_scans,
             init_motion_compensation=p.init_motion_compensation)
         imu_from_radar = np.linalg.inv(base_from_imu) @ base_from_radar
         res = run_ekf(imu_t, acc, gyro, scan_t, vel, cov, dims, valid, imu_from_radar, cfg)
