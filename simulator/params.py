@@ -1,0 +1,80 @@
+"""Sensor model parameters (defaults: TI AWR1843 single-chip radar, Ouster OS1-16, LORD 3DM-GX5 IMU).
+
+A world file may override any of them in its ``[radar]``, ``[lidar]`` and ``[imu]`` tables.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from pipeline.errors import UserError
+
+
+class _Params(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class RadarParams(_Params):
+    """Single-chip FMCW radar detections (what the TI driver publishes on /mmWaveDataHdl/RScan)."""
+
+    fov_azimuth_deg: float = Field(60.0, gt=0, lt=90, description="half field of view in azimuth (driver filter)")
+    fov_elevation_deg: float = Field(25.0, gt=0, lt=80, description="half field of view in elevation (driver filter)")
+    min_range: float = Field(0.3, ge=0, description="closest reported detection, m")
+    max_range: float = Field(12.0, gt=0, description="farthest reported detection, m")
+    n_rays: int = Field(600, ge=10, description="rays cast per scan to find candidate reflectors")
+    range_noise: float = Field(0.02, ge=0, description="range noise std before range-bin quantisation, m")
+    range_resolution: float = Field(0.125, ge=0,
+                                    description="range bin width, reported ranges are bin centres (0: off)")
+    azimuth_noise_deg: float = Field(3.0, ge=0, description="azimuth noise std, degrees")
+    elevation_noise_deg: float = Field(7.0, ge=0, description="elevation noise std, degrees")
+    doppler_noise: float = Field(0.03, ge=0, description="Doppler noise std before quantisation, m/s")
+    doppler_resolution: float = Field(0.04, ge=0, description="Doppler bin width, m/s (0: no quantisation)")
+    doppler_max: float = Field(2.56, gt=0, description="unambiguous Doppler; faster radial speeds wrap, m/s")
+    snr_ref_db: float = Field(42.0, description="SNR of a 0 dB surface at 1 m, normal incidence, on boresight")
+    range_loss_db_per_decade: float = Field(30.0, ge=0, description="SNR loss per decade of range (extended targets)")
+    incidence_exponent: float = Field(2.0, ge=0, description="SNR scales with cos(incidence)**exponent")
+    beam_azimuth_3db_deg: float = Field(55.0, gt=0, description="azimuth angle where the antenna gain is -3 dB")
+    beam_elevation_3db_deg: float = Field(22.0, gt=0, description="elevation angle where the antenna gain is -3 dB")
+    threshold_db: float = Field(12.0, description="CFAR detection threshold on the SNR, dB")
+    max_points: int = Field(200, ge=1, description="most detections reported per scan (strongest kept)")
+    clutter_rate: float = Field(3.0, ge=0, description="mean number of clutter false alarms per scan (Poisson)")
+    ghost_probability: float = Field(0.3, ge=0, le=1, description="chance that a specular return spawns a ghost")
+    ghost_loss_db: float = Field(3.0, ge=0, description="extra loss of the double-bounce path, dB")
+    time_jitter: float = Field(0.001, ge=0, description="std of the scan period jitter, s")
+
+
+class LidarParams(_Params):
+    """Spinning lidar like the Ouster OS1 (16 beams, reduced column count for speed and size)."""
+
+    beams: int = Field(16, ge=1, le=128, description="number of beams (rings)")
+    columns: int = Field(256, ge=8, le=2048, description="columns per revolution")
+    vertical_fov_deg: float = Field(33.2, gt=0, lt=180, description="total vertical field of view, degrees")
+    min_range: float = Field(0.5, ge=0, description="closest return, m")
+    max_range: float = Field(100.0, gt=0, description="farthest return, m")
+    range_noise: float = Field(0.01, ge=0, description="range noise std, m")
+    dropout: float = Field(0.005, ge=0, le=1, description="probability that a valid return is missing")
+    intensity_scale: float = Field(2000.0, gt=0, description="intensity = scale * reflectivity * cos / range^2")
+
+
+class ImuParams(_Params):
+    """MEMS IMU (3DM-GX5 class) with white noise and random-walk biases; accelerometer includes gravity."""
+
+    gyro_noise_density: float = Field(1.5e-4, ge=0, description="gyro white noise, rad/s/sqrt(Hz)")
+    accel_noise_density: float = Field(6.0e-4, ge=0, description="accelerometer white noise, m/s^2/sqrt(Hz)")
+    gyro_bias_sigma: float = Field(2.0e-3, ge=0, description="std of the initial gyro bias, rad/s")
+    accel_bias_sigma: float = Field(0.03, ge=0, description="std of the initial accelerometer bias, m/s^2")
+    gyro_bias_walk: float = Field(2.0e-5, ge=0, description="gyro bias random walk, rad/s/sqrt(s)")
+    accel_bias_walk: float = Field(3.0e-4, ge=0, description="accelerometer bias random walk, m/s^2/sqrt(s)")
+    gravity: float = Field(9.80665, gt=0, description="gravity magnitude, m/s^2")
+
+
+def make_params(model: type[_Params], overrides: dict[str, Any], where: str) -> Any:
+    """Build a parameter model from a world file's table; errors name the file and the parameter."""
+    try:
+        return model(**overrides)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        loc = ".".join(str(x) for x in first["loc"])
+        raise UserError(f"{where}: {loc}: {first['msg']}") from None

@@ -1,0 +1,150 @@
+"""Run a simulation: sensor timelines, then windows of radar, lidar, IMU and ground-truth data in time order.
+
+Every random draw comes from ``np.random.default_rng([seed, stream, index])`` with a fixed stream per
+sensor and the scan (or window) index, so results do not depend on how the run is chunked or threaded:
+the same seed gives the same bytes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from simulator import imu as imu_model
+from simulator import lidar as lidar_model
+from simulator import radar as radar_model
+from simulator import rig
+from simulator.params import ImuParams, LidarParams, RadarParams, make_params
+from simulator.trajectory import Trajectory, TrajectoryState
+from simulator.world import World
+
+STREAM_TIMING, STREAM_RADAR, STREAM_LIDAR, STREAM_IMU, STREAM_IMU_BIAS, STREAM_LATENCY = 1, 2, 3, 4, 5, 6
+
+NS = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class GtBlock:
+    t: np.ndarray  # (n,) seconds
+    position: np.ndarray  # (n, 3)
+    quaternion: np.ndarray  # (n, 4) x y z w, world <- base
+
+
+@dataclass(frozen=True)
+class Window:
+    index: int
+    t0_ns: int  # window start, ns from the start of the run
+    t1_ns: int
+    radar: list[radar_model.RadarScan]
+    lidar: list[lidar_model.LidarScan]
+    imu: imu_model.ImuBlock
+    truth: TrajectoryState  # ground truth at the IMU sample times
+    gt: GtBlock
+    tf_t: np.ndarray  # seconds of the /tf messages in this window
+
+
+def _grid(start: float, period: float, end: float, jitter: np.ndarray | None = None) -> np.ndarray:
+    n = max(0, int(np.floor((end - start) / period)) + 1)
+    t = start + period * np.arange(n)
+    if jitter is not None:
+        t = t + jitter[:n]
+    return t[(t >= 0) & (t < end)]
+
+
+def _ns(t: np.ndarray) -> np.ndarray:
+    return np.round(np.asarray(t) * NS).astype(np.int64)
+
+
+class Simulation:
+    """All sensors of one run, driven by one trajectory in one world."""
+
+    def __init__(self, world: World, duration: float, seed: int, window: float = 1.0, workers: int = 2) -> None:
+        self.world = world
+        self.duration = float(duration)
+        self.seed = int(seed)
+        self.window = float(window)
+        self.workers = int(workers)
+        where = str(world.path)
+        self.radar_p: RadarParams = make_params(RadarParams, world.spec.radar, f"{where} [radar]")
+        self.lidar_p: LidarParams = make_params(LidarParams, world.spec.lidar, f"{where} [lidar]")
+        self.imu_p: ImuParams = make_params(ImuParams, world.spec.imu, f"{where} [imu]")
+        self.traj = Trajectory(world.spec.trajectory, self.duration, floor=world.spec.floor)
+        self.radar_yaw = rig.yaw_of(rig.BASE_TO_RADAR)
+        self.lidar_yaw = rig.yaw_of(rig.BASE_TO_LIDAR)
+
+        rng = np.random.default_rng([self.seed, STREAM_TIMING])
+        d = self.duration
+        n_max = int(d * 300) + 10
+        rj = np.clip(rng.normal(0, self.radar_p.time_jitter, n_max), -0.01, 0.01)
+        gj = np.clip(rng.normal(0, 0.005, n_max), -0.02, 0.02)
+        self.radar_ns = _ns(_grid(0.05, 1 / rig.RADAR_RATE_HZ, d, rj))
+        sweep = 1 / rig.LIDAR_RATE_HZ
+        self.lidar_ns = _ns(_grid(0.0, sweep, d - sweep + 1e-9))
+        self.imu_ns = _ns(_grid(0.002, 1 / rig.IMU_RATE_HZ, d))
+        gt = _grid(0.08, 1 / rig.GT_RATE_HZ, d, gj)
+        drop = rng.random(len(gt)) < 0.03
+        drop[:1] = False
+        self.gt_ns = _ns(gt[~drop])
+        self.tf_ns = _ns(_grid(0.01, 1 / rig.TF_RATE_HZ, d))
+        self.sweep = sweep
+        self.n_windows = max(1, int(np.ceil(d / self.window - 1e-9)))
+        self._bias0 = imu_model.initial_bias(self.imu_p, np.random.default_rng([self.seed, STREAM_IMU_BIAS]))
+
+    # -------------------------------------------------------------------------------------------------------
+    def _range(self, stamps: np.ndarray, k: int) -> np.ndarray:
+        lo, hi = round(k * self.window * NS), round((k + 1) * self.window * NS)
+        return np.nonzero((stamps >= lo) & (stamps < hi))[0]
+
+    def radar_scans(self, k: int) -> list[radar_model.RadarScan]:
+        idx = self._range(self.radar_ns, k)
+        if not len(idx):
+            return []
+        t = self.radar_ns[idx] / NS
+        st = self.traj.state(t)
+        pos, vel, _ = st.sensor(rig.BASE_TO_RADAR.t)
+        return [
+            radar_model.simulate_scan(self.world.scene, self.radar_p, int(i), float(t[j]), pos[j],
+                                      float(st.yaw[j] + self.radar_yaw), vel[j],
+                                      np.random.default_rng([self.seed, STREAM_RADAR, int(i)]))
+            for j, i in enumerate(idx)
+        ]
+
+    def lidar_scans(self, k: int) -> list[lidar_model.LidarScan]:
+        out = []
+        w = self.lidar_p.columns
+        for i in self._range(self.lidar_ns, k):
+            t0 = self.lidar_ns[i] / NS
+            tc = t0 + np.arange(w) * self.sweep / w
+            st = self.traj.state(tc)
+            pos, _, _ = st.sensor(rig.BASE_TO_LIDAR.t)
+            out.append(lidar_model.simulate_scan(self.world.scene, self.lidar_p, int(i), float(t0), pos,
+                                                 st.yaw + self.lidar_yaw, self.sweep,
+                                                 np.random.default_rng([self.seed, STREAM_LIDAR, int(i)])))
+        return out
+
+    def _exteroceptive(self, k: int) -> tuple[list[radar_model.RadarScan], list[lidar_model.LidarScan]]:
+        return self.radar_scans(k), self.lidar_scans(k)
+
+    def windows(self) -> Iterator[Window]:
+        """Windows in time order; radar and lidar ray casting runs ahead on a small thread pool."""
+        bias = self._bias0
+        with ThreadPoolExecutor(max_workers=max(1, self.workers)) as pool:
+            ahead = max(1, self.workers)
+            futures = {k: pool.submit(self._exteroceptive, k) for k in range(min(ahead, self.n_windows))}
+            for k in range(self.n_windows):
+                if k + ahead < self.n_windows:
+                    futures[k + ahead] = pool.submit(self._exteroceptive, k + ahead)
+                radar, lidar = futures.pop(k).result()
+                ii = self._range(self.imu_ns, k)
+                truth = self.traj.state(self.imu_ns[ii] / NS)
+                block, bias = imu_model.simulate_block(truth, rig.BASE_TO_IMU, self.imu_p, rig.IMU_RATE_HZ, bias,
+                                                       np.random.default_rng([self.seed, STREAM_IMU, k]))
+                gi = self._range(self.gt_ns, k)
+                gst = self.traj.state(self.gt_ns[gi] / NS)
+                gt = GtBlock(t=gst.t, position=gst.position, quaternion=gst.quaternion)
+                ti = self._range(self.tf_ns, k)
+                yield Window(index=k, t0_ns=round(k * self.window * NS), t1_ns=round((k + 1) * self.window * NS),
+                             radar=radar, lidar=lidar, imu=block, truth=truth, gt=gt, tf_t=self.tf_ns[ti] / NS)
