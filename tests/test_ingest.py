@@ -173,24 +173,29 @@ def test_time_going_backwards_is_reported_and_sorted(tmp_path: Path) -> None:
     assert np.all(np.diff(read_artifact(out / "imu.parquet", "imu")["t_ns"].to_numpy()) > 0)
 
 
-def test_label_sidecar_is_joined_by_stamp_and_point_index(tmp_path: Path) -> None:
+@pytest.mark.parametrize("form", ["ros1", "folder"])
+def test_label_sidecar_is_joined_by_scan_and_point_index(tmp_path: Path, form: str) -> None:
     sc = make_scene()
     sc.radar[2][1]["y"][1] = np.nan  # dropped: its label must go with it
-    bag = write_log(tmp_path / "log", sc, "ros1")
+    log = write_log(tmp_path / "log", sc, form)
+    if form == "folder":  # the extracted form keeps microseconds ('%6f' % stamp.to_sec())
+        ts = np.array([t for t, _ in sc.radar])
+        (log / "single_chip/pointclouds/timestamps.txt").write_text("".join("%6f\n" % (t * 1e-9) for t in ts))
     rows = []
     for i, (t, cols) in enumerate(sc.radar):
         rows += [(i, t, j, (i + j) % 3) for j in range(len(cols["x"]))]
-    side = tmp_path / "log.sim"
+    side = log / "sim" if form == "folder" else tmp_path / "log.sim"
     side.mkdir()
     arr = np.array(rows, dtype=np.int64)
     pq.write_table(pa.table({"scan": arr[:, 0].astype(np.int32), "t_ns": arr[:, 1], "point": arr[:, 2].astype(np.int32),
                              "label": arr[:, 3].astype(np.int8)}), side / "radar_labels.parquet")
-    out = ingest(bag, tmp_path / "runs")
+    out = ingest(log, tmp_path / "runs")
     radar = read_artifact(out / "radar.parquet", "radar")
     assert radar.schema.field("label").type == pa.int8()
     expect = np.array([(i + j) % 3 for i, (_, c) in enumerate(sc.radar) for j in range(len(c["x"]))
                        if not (i == 2 and j == 1)])
     np.testing.assert_array_equal(radar["label"].to_numpy(), expect)
+    assert not any("labels" in w for w in manifest(out)["stats"].get("warnings", []))
 
 
 def test_odometry_topic_is_kept_when_named(tmp_path: Path) -> None:
@@ -226,3 +231,42 @@ def test_cache_key_follows_the_source_file(tmp_path: Path) -> None:
     write_log(tmp_path / "log", make_scene(n_radar=7), "ros1")
     status = Runner(seq, tmp_path / "runs", load_stages(), Workflow("test", ["ingest"])).stage_status("ingest")
     assert status.state == "stale" and "source data changed" in status.reason
+
+
+def _peak_ingest_memory(tmp_path: Path, n_lidar: int) -> float:
+    import tracemalloc
+
+    from rich.console import Console
+
+    from pipeline.stage import StageContext
+    from stages.ingest.stage import STAGE, IngestParams
+
+    sc = make_scene(n_radar=4, n_lidar=1, n_imu=10, n_gt=3)
+    rng = np.random.default_rng(0)
+    t0 = sc.lidar[0][0]
+    keys = ("x", "y", "z", "intensity")
+    sc.lidar = [(t0 + i * 10_000_000, {k: rng.normal(size=5000).astype(np.float32) for k in keys})
+                for i in range(n_lidar)]
+    bag = write_log(tmp_path / f"long{n_lidar}", sc, "ros1")
+    out = tmp_path / f"out{n_lidar}"
+    out.mkdir()
+    ctx = StageContext("ingest", SequenceInfo(name="m", kind="source", source=bag), IngestParams(batch_rows=20_000),
+                       out, {}, Console(quiet=True))
+    tracemalloc.start()
+    try:
+        STAGE.run(ctx)
+        ctx.close()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert read_artifact(out / "lidar.parquet", "lidar").num_rows == 5000 * n_lidar
+    return peak
+
+
+def test_memory_stays_bounded_on_long_bags(tmp_path: Path) -> None:
+    # 3x the lidar data must not mean 3x the peak memory (Python-side allocations, numpy included)
+    _peak_ingest_memory(tmp_path, 2)  # imports and caches out of the way
+    short = _peak_ingest_memory(tmp_path, 40)
+    long = _peak_ingest_memory(tmp_path, 120)
+    assert long < 1.3 * short
+    assert long < 0.5 * 120 * 5000 * 48  # well under the bag's lidar payload

@@ -87,23 +87,32 @@ def sort_poses(t_ns: npt.NDArray[np.int64], values: npt.NDArray[np.float64]
 class LabelSidecar:
     """Simulator ground-truth labels per radar point (``radar_labels.parquet``): 0 true, 1 clutter, 2 ghost.
 
-    Looked up beside the log (``X.sim/`` next to ``X.bag``) or inside it (``X/sim/``). Rows are matched
-    to scans by message time stamp and to points by their index within the scan message.
+    Looked up beside the log (``X.sim/`` next to ``X.bag``) or inside it (``X/sim/``). A scan's rows are
+    found by its message index on the radar topic (``scan``, the ``.bin`` index in the folder form) and
+    accepted when the stamps agree within ``tolerance_ns`` (the folder form keeps microseconds only);
+    otherwise by the nearest stamp within that tolerance. Points are matched by their index in the scan.
     """
 
     FILENAME = "radar_labels.parquet"
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, tolerance_ns: int = 1_000_000) -> None:
         self.path = path
+        self.tolerance_ns = tolerance_ns
         try:
-            table = pq.read_table(path, columns=["t_ns", "point", "label"])
+            table = pq.read_table(path, columns=["scan", "t_ns", "point", "label"])
         except Exception as exc:
             raise UserError(f"{path}: unreadable label sidecar ({exc}); regenerate the simulated sequence") from exc
+        scan = table["scan"].to_numpy().astype(np.int64)
         t = table["t_ns"].to_numpy().astype(np.int64)
         point = table["point"].to_numpy().astype(np.int64)
         label = table["label"].to_numpy().astype(np.int8)
-        order = np.lexsort((point, t))
-        self.t, self.point, self.label = t[order], point[order], label[order]
+        order = np.lexsort((point, scan))
+        self.scan, self.t, self.point, self.label = scan[order], t[order], point[order], label[order]
+        self.scan_ids, starts = np.unique(self.scan, return_index=True)
+        self.starts = np.r_[starts, len(self.scan)]
+        self.scan_t = self.t[starts]
+        by_time = np.argsort(self.scan_t, kind="stable")
+        self._sorted_t, self._sorted_k = self.scan_t[by_time], by_time
         self.unmatched_scans = 0
 
     @classmethod
@@ -114,13 +123,26 @@ class LabelSidecar:
                 return cls(cand)
         return None
 
-    def labels_for(self, t_ns: int, n_points: int) -> npt.NDArray[np.int8]:
-        """Labels of the ``n_points`` points of the scan stamped ``t_ns`` (-1 where unknown)."""
+    def _scan_slot(self, index: int, t_ns: int) -> int | None:
+        k = int(np.searchsorted(self.scan_ids, index))
+        if k < len(self.scan_ids) and self.scan_ids[k] == index:
+            if abs(int(self.scan_t[k]) - t_ns) <= self.tolerance_ns:
+                return k
+        j = int(np.searchsorted(self._sorted_t, t_ns))
+        best = [c for c in (j - 1, j) if 0 <= c < len(self._sorted_t)]
+        if not best:
+            return None
+        c = min(best, key=lambda c: abs(int(self._sorted_t[c]) - t_ns))
+        return int(self._sorted_k[c]) if abs(int(self._sorted_t[c]) - t_ns) <= self.tolerance_ns else None
+
+    def labels_for(self, index: int, t_ns: int, n_points: int) -> npt.NDArray[np.int8]:
+        """Labels of the ``n_points`` points of scan message ``index`` stamped ``t_ns`` (-1 where unknown)."""
         out = np.full(n_points, -1, dtype=np.int8)
-        lo, hi = np.searchsorted(self.t, [t_ns, t_ns + 1])
-        if hi == lo:
+        k = self._scan_slot(index, t_ns)
+        if k is None:
             self.unmatched_scans += 1
             return out
+        lo, hi = self.starts[k], self.starts[k + 1]
         pts = self.point[lo:hi]
         ok = (pts >= 0) & (pts < n_points)
         out[pts[ok]] = self.label[lo:hi][ok]

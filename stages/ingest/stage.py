@@ -200,7 +200,7 @@ class _Ingest:
         if msg.stream == "radar":
             out["doppler"] = cols["doppler"] * np.float32(self.sign)
             if self.labels is not None:
-                lab = self.labels.labels_for(msg.t_ns, n_all)
+                lab = self.labels.labels_for(msg.index, msg.t_ns, n_all)
                 out["label"] = lab[ok] if n_bad else lab
             else:
                 out["label"] = np.full(n, -1, np.int8)
