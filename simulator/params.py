@@ -23,7 +23,7 @@ class RadarParams(_Params):
     fov_elevation_deg: float = Field(25.0, gt=0, lt=80, description="half field of view in elevation (driver filter)")
     min_range: float = Field(0.3, ge=0, description="closest reported detection, m")
     max_range: float = Field(12.0, gt=0, description="farthest reported detection, m")
-    n_rays: int = Field(600, ge=10, description="rays cast per scan to find candidate reflectors")
+    n_rays: int = Field(480, ge=10, description="rays cast per scan to find candidate reflectors")
     range_noise: float = Field(0.02, ge=0, description="range noise std before range-bin quantisation, m")
     range_resolution: float = Field(0.125, ge=0,
                                     description="range bin width, reported ranges are bin centres (0: off)")

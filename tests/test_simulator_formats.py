@@ -192,7 +192,7 @@ def test_sidecar_labels_match_the_log(bag_path: Path, bag: dict[str, list[tuple[
     counts = np.bincount(np.array(d["label"]), minlength=3)
     assert counts[0] > 0.9 * counts.sum() and counts[1] > 0 and counts[2] > 0 and counts.size == 3
     meta = json.loads((side / "meta.json").read_text())
-    assert meta["seed"] == 7 and meta["world"] == "demo" and (side / "world.toml").exists()
+    assert meta["seed"] == 7 and meta["world"] == "hallway_loop" and (side / "world.toml").exists()
     assert (folder_path / "sim" / "radar_labels.parquet").exists()
     assert pq.read_table(folder_path / "sim" / "radar_labels.parquet").equals(t)
 

@@ -122,7 +122,7 @@ class WorldGeometry:
         return d
 
     def first_vertical_crossing(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """Fraction along each segment a->b (N, 3) where it first crosses a vertical face (inf: none)."""
+        """Fraction along each segment a->b (N, 3) where it first crosses a vertical face or pillar (inf: none)."""
         out = np.full(len(a), np.inf)
         for x0, y0, x1, y1, z0, z1 in self.vr:
             e = np.array([x1 - x0, y1 - y0])
@@ -135,13 +135,24 @@ class WorldGeometry:
             z = a[:, 2] + t * (b[:, 2] - a[:, 2])
             ok = (np.abs(den) > 1e-12) & (t > 0) & (t < 1) & (u >= 0) & (u <= 1) & (z >= z0) & (z <= z1)
             out = np.where(ok, np.minimum(out, t), out)
+        for cx, cy, r, z0, z1 in self.cyl:
+            d = b[:, :2] - a[:, :2]
+            f = a[:, :2] - np.array([cx, cy])
+            qa, qb, qc = (d * d).sum(1), 2 * (f * d).sum(1), (f * f).sum(1) - r * r
+            disc = qb * qb - 4 * qa * qc
+            with np.errstate(invalid="ignore"):
+                t = (-qb - np.sqrt(disc)) / (2 * qa)
+            z = a[:, 2] + t * (b[:, 2] - a[:, 2])
+            ok = (disc >= 0) & (t > 0) & (t < 1) & (z >= z0) & (z <= z1)
+            out = np.where(ok, np.minimum(out, t), out)
         return out
 
 
 _CACHE: dict[tuple[str, float, int, str], Path] = {}
 
 
-def simulated(factory: Any, world: str = "demo", duration: float = 4.0, seed: int = 7, fmt: str = "bag") -> Path:
+def simulated(factory: Any, world: str = "hallway_loop", duration: float = 4.0, seed: int = 7,
+              fmt: str = "bag") -> Path:
     """A simulated log made once per test session (shared by the simulator test modules)."""
     from simulator import simulate_to
 
