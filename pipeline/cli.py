@@ -287,6 +287,51 @@ def report(
             out.print(str(p))
 
 
+@app.command()
+def train(
+    seqs: Annotated[str, typer.Option("--seqs", "-s", help="sequences for the patch pairs: a,b,... or globs")],
+    test_seqs: Annotated[str | None, typer.Option("--test-seqs", help="held-out sequences (not trained on; their "
+                                                  "patch CD is logged per epoch); 'none' for no held-out set; "
+                                                  "default: RMap's split of --seqs by run index")] = None,
+    size: Annotated[str, typer.Option("--size", help="model size: small (CPU) or paper")] = "small",
+    epochs: Annotated[int, typer.Option("--epochs", help="epochs (paper: 100)")] = 100,
+    batch_size: Annotated[int, typer.Option("--batch-size", help="patches per step (paper: 16)")] = 16,
+    lr: Annotated[float, typer.Option("--lr", help="AdamW initial learning rate (paper: 1e-5)")] = 1e-5,
+    weight_decay: Annotated[float, typer.Option("--weight-decay", help="AdamW weight decay (paper: 5e-5)")] = 5e-5,
+    lr_decay: Annotated[float, typer.Option("--lr-decay", help="lr factor every --decay-every epochs")] = 0.9,
+    decay_every: Annotated[int, typer.Option("--decay-every", help="epochs between lr decays (paper: 20)")] = 20,
+    loss: Annotated[str, typer.Option("--loss", help="Chamfer variant per level: l2 (eq. 1) or l1")] = "l2",
+    augment: Annotated[bool, typer.Option("--augment/--no-augment", help="random yaw and mirror")] = True,
+    seed: Annotated[int, typer.Option("--seed", help="seed of weights, batches, resampling, augmentation")] = 0,
+    device: Annotated[str, typer.Option("--device", help="cpu, cuda or auto")] = "cpu",
+    threads: Annotated[int | None, typer.Option("--threads", help="torch CPU threads")] = None,
+    time_limit: Annotated[float | None, typer.Option("--time-limit", help="stop after the epoch that passes "
+                                                     "this many seconds")] = None,
+    out_path: Annotated[Path | None, typer.Option("--out", help="checkpoint (.safetensors or .pt); default "
+                                                  "<runs>/models/rmap_<size>.safetensors")] = None,
+    half: Annotated[bool, typer.Option("--half", help="store the weights as float16")] = False,
+    set_: SetOpt = None,
+    runs_dir: RunsOpt = None,
+    workflow: WorkflowOpt = "default",
+) -> None:
+    """Train the completion network (RMap Sec. III-D) on the patches of --seqs; writes a checkpoint and a curve."""
+    from stages.complete.train_cli import TrainRequest, run_training
+
+    registry = load_stages()
+    runs = runs_dir or default_runs_dir()
+    req = TrainRequest(
+        seqs=seqs, test_seqs=test_seqs, runs_dir=runs, registry=registry, workflow=load_workflow(workflow),
+        overrides=parse_set(set_ or [], registry), out=out_path or runs / "models" / f"rmap_{size}.safetensors",
+        train_kwargs=dict(size=size, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
+                          lr_decay=lr_decay, decay_every=decay_every, loss=loss, augment=augment, seed=seed,
+                          device=device, time_limit_s=time_limit),
+        threads=threads, half=half,
+    )
+    summary = run_training(req, console)
+    for key in ("checkpoint", "curve", "history"):
+        out.print(summary[key])
+
+
 def main() -> None:
     """Console entry point with the exit-code contract."""
     try:

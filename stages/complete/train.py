@@ -1,0 +1,243 @@
+"""Training the completion network on patch pairs (RMap Sec. III-D): Chamfer at every level (eq. 1-2),
+AdamW with the paper's settings as defaults, a training-curve figure.
+
+The ground truth of level i is the lidar patch downsampled by FPS to that level's size (eq. 1). Training
+draws every random number from seeded generators (numpy for resampling and augmentation, torch for the
+weights and batch order), so a run is repeatable on the same device and thread count.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from stages.complete.checkpoint import CheckpointMeta
+from stages.complete.data import Patch, normalize, patch_scale, resample
+from stages.complete.infer import prepare_inputs
+from stages.complete.model import SIZES, ModelConfig, UpPoinTr, count_parameters
+from stages.complete.ops import chamfer_l1, chamfer_l2, fps, gather_points
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training settings; the defaults are the paper's (AdamW, lr 1e-5, wd 5e-5, batch 16, 100 epochs,
+    lr x0.9 every 20 epochs)."""
+
+    size: str = "small"
+    epochs: int = 100
+    batch_size: int = 16
+    lr: float = 1e-5
+    weight_decay: float = 5e-5
+    lr_decay: float = 0.9
+    decay_every: int = 20
+    grad_clip: float = 10.0
+    loss: Literal["l2", "l1"] = "l2"
+    augment: bool = True
+    seed: int = 0
+    device: str = "cpu"
+    norm_scale: float | None = None
+    time_limit_s: float | None = None
+
+    def model_config(self) -> ModelConfig:
+        if self.size not in SIZES:
+            raise ValueError(f"unknown model size {self.size!r} ({' | '.join(SIZES)})")
+        return SIZES[self.size]
+
+
+@dataclass
+class PatchTensors:
+    """Normalised inputs ``x (P, n_input, 3)``, targets ``g (P, n_output, 3)`` and the FPS order of ``g``."""
+
+    x: Tensor
+    g: Tensor
+    #: FPS indices of every target, ``(P, max level size below n_output)``; prefixes give each level's G_i
+    fps_idx: Tensor
+
+    def __len__(self) -> int:
+        return int(self.x.shape[0])
+
+
+def build_tensors(patches: Sequence[Patch], cfg: ModelConfig, scale: float, rng: np.random.Generator) -> PatchTensors:
+    """Inputs resampled to ``n_input``, targets to ``n_output`` points, normalised by seed and ``scale``."""
+    x = prepare_inputs(patches, cfg.n_input, scale, rng)
+    g = np.stack([normalize(resample(p.lidar, cfg.n_output, rng), p.seed, scale) for p in patches])
+    gt = torch.from_numpy(g).float()
+    below = [s for s in cfg.level_sizes() if s < cfg.n_output]
+    n_fps = max(below) if below else 1
+    # FPS is greedy from a fixed start, so the first n samples of a longer run are FPS(G, n) for every n
+    idx = torch.cat([fps(gt[s : s + 64], n_fps) for s in range(0, len(gt), 64)]) if len(gt) else torch.zeros(0, n_fps)
+    return PatchTensors(torch.from_numpy(x).float(), gt, idx.long())
+
+
+def level_targets(g: Tensor, fps_idx: Tensor, sizes: Sequence[int]) -> list[Tensor]:
+    """G_i for every level: the target itself at full size, else its first ``size`` FPS samples."""
+    return [g if s >= g.shape[1] else gather_points(g, fps_idx[:, :s]) for s in sizes]
+
+
+def random_rotation_z(n: int, rng: np.random.Generator, mirror: bool = True) -> Tensor:
+    """``n`` random rotations about the vertical axis, each mirrored in y with probability 1/2."""
+    a = rng.uniform(0.0, 2.0 * math.pi, n)
+    c, s = np.cos(a), np.sin(a)
+    r = np.zeros((n, 3, 3))
+    r[:, 0, 0], r[:, 0, 1], r[:, 1, 0], r[:, 1, 1], r[:, 2, 2] = c, -s, s, c, 1.0
+    if mirror:
+        flip = rng.random(n) < 0.5
+        r[flip, :, 1] *= -1.0
+    return torch.from_numpy(r).float()
+
+
+def level_losses(pred: Sequence[Tensor], targets: Sequence[Tensor], loss: str) -> list[Tensor]:
+    """CD_i of every level, each averaged over the batch (eq. 1)."""
+    fn = chamfer_l2 if loss == "l2" else chamfer_l1
+    return [fn(p, t).mean() for p, t in zip(pred, targets, strict=True)]
+
+
+@torch.no_grad()
+def evaluate(model: UpPoinTr, data: PatchTensors, scale: float, device: torch.device,
+             batch_size: int = 8) -> dict[str, float]:
+    """Patch-level CD-l1 (m) and CD-l2 (m^2) of the finest level against the full target."""
+    model.eval()
+    l1, l2 = [], []
+    for s in range(0, len(data), batch_size):
+        pred = model(data.x[s : s + batch_size].to(device))[-1]
+        g = data.g[s : s + batch_size].to(device)
+        l1.append(chamfer_l1(pred, g).cpu() * scale)
+        l2.append(chamfer_l2(pred, g).cpu() * scale**2)
+    if not l1:
+        return {}
+    return {"cd_l1_m": float(torch.cat(l1).mean()), "cd_l2_m2": float(torch.cat(l2).mean())}
+
+
+@dataclass
+class TrainResult:
+    model: UpPoinTr
+    meta: CheckpointMeta
+    history: list[dict[str, Any]] = field(default_factory=list)
+
+
+def train(
+    train_patches: Sequence[Patch],
+    val_patches: Sequence[Patch],
+    cfg: TrainConfig,
+    device: torch.device,
+    advance: Callable[[int], None] | None = None,
+    on_epoch: Callable[[dict[str, Any]], None] | None = None,
+    record: dict[str, Any] | None = None,
+) -> TrainResult:
+    """Train from scratch; returns the final-epoch model (no selection on the held-out set)."""
+    if not train_patches:
+        raise ValueError("no training patches")
+    mcfg = cfg.model_config()
+    rng = np.random.default_rng(cfg.seed)
+    torch.manual_seed(cfg.seed)
+    scale = cfg.norm_scale or patch_scale(train_patches)
+    t_prep = time.perf_counter()
+    tr = build_tensors(train_patches, mcfg, scale, rng)
+    va = build_tensors(val_patches, mcfg, scale, np.random.default_rng(cfg.seed + 1)) if val_patches else None
+    prep_s = time.perf_counter() - t_prep
+    model = UpPoinTr(mcfg).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda e: cfg.lr_decay ** (e // cfg.decay_every))
+    sizes = mcfg.level_sizes()
+    history: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+    stopped_early = False
+    for epoch in range(cfg.epochs):
+        model.train()
+        te = time.perf_counter()
+        order = torch.from_numpy(rng.permutation(len(tr)))
+        sums = np.zeros(len(sizes))
+        n_batches = 0
+        for s in range(0, len(tr), cfg.batch_size):
+            idx = order[s : s + cfg.batch_size]
+            x, g = tr.x[idx], tr.g[idx]
+            if cfg.augment:
+                rot = random_rotation_z(len(idx), rng)
+                x, g = x @ rot.transpose(1, 2), g @ rot.transpose(1, 2)
+            x, g = x.to(device), g.to(device)
+            targets = level_targets(g, tr.fps_idx[idx].to(device), sizes)
+            losses = level_losses(model(x), targets, cfg.loss)
+            total = torch.stack(losses).sum()  # eq. 2
+            opt.zero_grad(set_to_none=True)
+            total.backward()
+            if cfg.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            opt.step()
+            sums += np.array([v.item() for v in losses])
+            n_batches += 1
+            if advance is not None:
+                advance(len(idx))
+        sched.step()
+        row: dict[str, Any] = {
+            "epoch": epoch + 1,
+            "lr": opt.param_groups[0]["lr"],
+            "train_loss": float(sums.sum() / n_batches),
+            "train_levels": (sums / n_batches).tolist(),
+            "seconds": time.perf_counter() - te,
+        }
+        if va is not None and len(va):
+            row.update({f"val_{k}": v for k, v in evaluate(model, va, scale, device).items()})
+        history.append(row)
+        if on_epoch is not None:
+            on_epoch(row)
+        if cfg.time_limit_s is not None and time.perf_counter() - t0 > cfg.time_limit_s and epoch + 1 < cfg.epochs:
+            stopped_early = True
+            break
+    info = {
+        "config": asdict(cfg),
+        "n_parameters": count_parameters(model),
+        "n_train_patches": len(tr),
+        "n_val_patches": len(va) if va is not None else 0,
+        "epochs_run": len(history),
+        "stopped_early": stopped_early,
+        "prep_seconds": prep_s,
+        "train_seconds": time.perf_counter() - t0,
+        "device": str(device),
+        "torch": torch.__version__,
+        "final": history[-1] if history else {},
+        **(record or {}),
+    }
+    return TrainResult(model.eval(), CheckpointMeta(mcfg, scale, info), history)
+
+
+def plot_curve(history: Sequence[dict[str, Any]], path: str | Path, title: str = "") -> Path:
+    """Training loss per level (eq. 1) and held-out patch CD-l1 against the epoch."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    epochs = [h["epoch"] for h in history]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    ax = axes[0]
+    ax.plot(epochs, [h["train_loss"] for h in history], "k-", lw=2, label="J = sum CD_i (eq. 2)")
+    levels = np.array([h["train_levels"] for h in history])
+    for i in range(levels.shape[1] if levels.ndim == 2 else 0):
+        ax.plot(epochs, levels[:, i], lw=1, label=f"CD level {i}")
+    ax.set_yscale("log")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("training loss (normalised units)")
+    ax.legend(fontsize=8)
+    ax = axes[1]
+    if history and "val_cd_l1_m" in history[0]:
+        ax.plot(epochs, [h["val_cd_l1_m"] for h in history], "b-", label="held-out patch CD-l1 (m)")
+        ax.set_ylabel("CD-l1 (m)")
+        ax.legend(fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "no held-out patches", ha="center", va="center", transform=ax.transAxes)
+    ax.set_xlabel("epoch")
+    fig.suptitle(title or "completion network training")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
