@@ -83,7 +83,7 @@ def test_lidar_map_equals_octomap_on_the_stage_inputs(gt_run: tuple[Path, dict],
         p = pts[m]
         # radar boresight = base +y = lidar -y (lidar yawed 180 deg): keep the half-space y_lidar <= 0
         p = p[(p[:, 1] <= 0) & (np.linalg.norm(p, axis=1) <= 20.0)]
-        tree.insertPointCloud(p @ T[:3, :3].T + T[:3, 3], T[:3, 3].copy(), discretize=True)
+        tree.insertPointCloud(p @ T[:3, :3].T + T[:3, 3], T[:3, 3].copy())
     ref = set()
     for leaf in tree.begin_leafs():
         if tree.isNodeOccupied(leaf):

@@ -75,7 +75,8 @@ class VoxelParams(StageParams):
     lidar_max_range: float = Field(20.0, ge=0, description="drop lidar points farther than this (m); 0 = no limit")
     lidar_stride: int = Field(1, ge=1, description="insert every k-th lidar scan (speed)")
     lidar_discretize: bool = Field(
-        True, description="cast one ray per distinct end voxel (OctoMap's discretize option; same hit set, faster)"
+        False, description="cast one ray per distinct end voxel (OctoMap's discretize option: same hits, "
+        "slightly different misses, faster on dense scans)"
     )
     export_bt: bool = Field(False, description="also write radar_map.bt / lidar_map.bt (needs the octomap binding)")
 
