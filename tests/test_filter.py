@@ -16,11 +16,13 @@ from pipeline.runner import Runner
 from pipeline.sequences import SequenceInfo
 from schemas.io import read_artifact
 from tests.test_filter_scene import circle_run, write_circle_log
+from tests.test_ingest import run_unwrapped
 
 
 def run_stages(path: Path, runs: Path, targets: list[str], overrides: dict | None = None) -> Path:
     seq = SequenceInfo(name="circle", kind="source", source=path)
-    Runner(seq, runs, load_stages(), Workflow("test", ["ingest", "filter", "odometry"]), overrides or {}).run(targets)
+    run_unwrapped(Runner(seq, runs, load_stages(), Workflow("test", ["ingest", "filter", "odometry"]), overrides or {}),
+                  targets)
     return runs / "circle"
 
 

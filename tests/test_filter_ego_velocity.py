@@ -85,3 +85,17 @@ def test_deterministic_for_a_seed() -> None:
     a = ev.estimate(dirs, dop, ev.EgoVelocityConfig(), np.random.default_rng(1))
     b = ev.estimate(dirs, dop, ev.EgoVelocityConfig(), np.random.default_rng(1))
     np.testing.assert_array_equal(a.v, b.v)
+
+
+def test_sparse_ground_scan_prefers_the_planar_model() -> None:
+    # a real failure case (simulated open field): ground returns in a narrow elevation band plus three
+    # clutter points; the platform moves at (1.21, 0.01, 0.00) m/s in the radar frame. A 3D hypothesis
+    # through clutter fits as many points as the true motion, so REVE's plain 3D RANSAC often picks it.
+    pts = np.array([[1.418, 1.214, -0.719, -0.8], [2.126, -1.032, -0.816, -0.96], [2.491, 0.428, -0.709, -1.08],
+                    [2.636, -1.257, -0.685, -0.96], [2.815, 0.496, -0.911, -1.16], [4.224, -2.895, -0.217, -2.4],
+                    [4.087, 3.821, 1.327, 2.4], [7.772, 7.183, -4.17, 0.2]])
+    dirs, _ = ev.unit_directions(pts[:, :3])
+    truth = np.array([1.2146, 0.006, 0.0019])
+    errors = [np.linalg.norm(ev.estimate(dirs, pts[:, 3], ev.EgoVelocityConfig(), np.random.default_rng(s)).v - truth)
+              for s in range(100)]
+    assert np.mean(np.array(errors) < 0.2) > 0.95

@@ -35,9 +35,21 @@ from tests.test_ingest_logs import (
 FORMS = ["ros1", "ros2", "mcap", "bare_mcap", "folder"]
 
 
+def run_unwrapped(runner: Runner, targets: list[str]) -> None:
+    """``runner.run``, re-raising a failed stage's own error when the runner wraps it."""
+    try:
+        runner.run(targets)
+    except Exception as exc:
+        first = getattr(exc, "first", None)
+        if isinstance(first, BaseException):
+            raise first from exc
+        raise
+
+
 def ingest(path: Path, runs: Path, dataset: str = "coloradar", **params: Any) -> Path:
     seq = SequenceInfo(name=path.name.replace(".", "_"), kind="source", dataset=dataset, source=path)
-    Runner(seq, runs, load_stages(), Workflow("test", ["ingest"]), {"ingest": params} if params else {}).run(["ingest"])
+    run_unwrapped(Runner(seq, runs, load_stages(), Workflow("test", ["ingest"]), {"ingest": params} if params else {}),
+                  ["ingest"])
     return runs / seq.name / "ingest"
 
 

@@ -51,6 +51,14 @@ class FilterParams(StageParams):
                                             description="outlier share tolerated by the zero-velocity test (REVE)")
     sigma_offset_mps: float = Field(0.05, ge=0, description="added to the LSQ velocity std (REVE sigma_offset)")
     max_condition: float = Field(1000.0, gt=1, description="LSQ condition bound; above it v_z is fixed to 0")
+    max_sigma_xy_mps: float = Field(0.2, gt=0, description="largest LSQ std of v_x, v_y for a valid estimate (REVE)")
+    max_sigma_z_mps: float = Field(0.2, gt=0, description="largest LSQ std of v_z; above it v_z is fixed to 0")
+    max_vz_mps: float = Field(1.0, gt=0, description="largest plausible |v_z| (radar z up); 3D solutions beyond it "
+                                                     "fall back to the planar model")
+    doppler_sigma_floor_mps: float = Field(0.05, ge=0,
+                                           description="floor of the LSQ residual std (Doppler resolution ~0.04 m/s)")
+    temporal_prior: bool = Field(True, description="offer the previous scan's velocity as a RANSAC hypothesis; "
+                                                   "it wins ties in the inlier count")
     static_threshold_mps: float = Field(0.15, gt=0,
                                         description="keep points with |d + r.v| below this (static world)")
     range_sigma_m: float = Field(0.0625, ge=0, description="modelled range noise std (half a 0.125 m range bin)")
@@ -74,7 +82,8 @@ def _config(p: FilterParams) -> ev.EgoVelocityConfig:
         inlier_threshold=p.inlier_threshold_mps, outlier_probability=p.outlier_probability,
         success_probability=p.success_probability, max_iterations=p.max_iterations, min_points=p.min_points,
         zero_velocity_threshold=p.zero_velocity_threshold_mps, allowed_outlier_fraction=p.allowed_outlier_fraction,
-        sigma_offset=p.sigma_offset_mps, max_condition=p.max_condition)
+        sigma_offset=p.sigma_offset_mps, max_condition=p.max_condition, max_sigma_xy=p.max_sigma_xy_mps,
+        max_sigma_z=p.max_sigma_z_mps, doppler_sigma_floor=p.doppler_sigma_floor_mps, max_vz=p.max_vz_mps)
 
 
 def filter_scans(xyz: npt.NDArray[np.float64], intensity: npt.NDArray[np.float64], doppler: npt.NDArray[np.float64],
@@ -101,10 +110,15 @@ def filter_scans(xyz: npt.NDArray[np.float64], intensity: npt.NDArray[np.float64
     n_inl = np.zeros(S, np.int32)
     dims = np.zeros(S, np.int8)
     valid = np.zeros(S, bool)
+    R_rel = interval_rotations(imu_t, gyro_radar, scan_t)
+    gap_ok = np.r_[True, np.diff(scan_t) * 1e-9 <= p.max_scan_gap_s]
     for s in range(S):
         a, b = starts[s], starts[s + 1]
         sel = np.flatnonzero(estimable[a:b]) + a
-        est = ev.estimate(dirs[sel], doppler[sel], cfg, rng)
+        prior = None
+        if p.temporal_prior and s > 0 and valid[s - 1] and gap_ok[s]:
+            prior = R_rel[s].T @ vel[s - 1]  # previous velocity in this scan's frame
+        est = ev.estimate(dirs[sel], doppler[sel], cfg, rng, prior)
         vel[s], cov[s], valid[s], dims[s] = est.v, est.cov, est.valid, est.dims
         n_inl[s] = int(est.inliers.sum())
     scan_of = np.repeat(np.arange(S), np.diff(starts))
@@ -115,9 +129,7 @@ def filter_scans(xyz: npt.NDArray[np.float64], intensity: npt.NDArray[np.float64
     certain = sig <= p.max_point_sigma_m
     candidate = in_range & static & bright & certain
     if p.track_frames > 0:
-        R_rel = interval_rotations(imu_t, gyro_radar, scan_t)
         motions = frame_motions(R_rel, np.nan_to_num(vel), scan_t)
-        gap_ok = np.r_[True, np.diff(scan_t) * 1e-9 <= p.max_scan_gap_s]
         usable = valid & np.r_[True, valid[:-1]] & gap_ok
         pts = [xyz[starts[s]:starts[s + 1]][candidate[starts[s]:starts[s + 1]]] for s in range(S)]
         gates = [p.track_gate_m + p.track_gate_sigma_scale * sig[starts[s]:starts[s + 1]][

@@ -138,7 +138,8 @@ class EkfRio:
         self.ba += dx[12:15]
         return True
 
-    def update_velocity(self, v_radar: F64, cov: F64, rows: F64, gyro: F64, R_ir: F64, t_ir: F64) -> bool:
+    def update_velocity(self, v_radar: F64, cov: F64, rows: npt.NDArray[np.intp], gyro: F64, R_ir: F64, t_ir: F64
+                        ) -> bool:
         """Radar ego-velocity update on the measurement rows ``rows`` (indices into x, y, z)."""
         w = gyro - self.bg
         v_body = self.R.T @ self.v
