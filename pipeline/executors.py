@@ -23,7 +23,7 @@ from rich.console import Console
 
 from pipeline.config import Overrides, load_workflow
 from pipeline.errors import UserError
-from pipeline.runner import Runner, StageOutcome
+from pipeline.runner import Runner, StageOutcome, StagesFailed
 from pipeline.sequences import SequenceInfo
 
 EXECUTORS = ("local", "ray")
@@ -77,6 +77,13 @@ def run_task(task: RunTask, console: Console | None = None) -> TaskResult:
         outcomes = runner.run(task.targets, force=task.force)
         return TaskResult(task.name, task.seq.name, task.runs_dir, True, outcomes,
                           seconds=time.perf_counter() - t0, worker=worker)
+    except StagesFailed as exc:
+        kind = "user" if exc.user_error else "bug"
+        detail = str(exc) if exc.user_error else f"{exc}\n" + "".join(traceback.format_exception(exc.first, limit=8))
+        for o in exc.outcomes:
+            o.error = None  # exceptions stay in the worker; the message travels
+        return TaskResult(task.name, task.seq.name, task.runs_dir, False, exc.outcomes, error=detail,
+                          error_kind=kind, seconds=time.perf_counter() - t0, worker=worker)
     except UserError as exc:
         return TaskResult(task.name, task.seq.name, task.runs_dir, False, error=str(exc), error_kind="user",
                           seconds=time.perf_counter() - t0, worker=worker)

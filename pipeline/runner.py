@@ -8,7 +8,7 @@ import platform
 import shutil
 import time
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -39,6 +39,23 @@ class StageOutcome:
     action: str  # ran | cached | reused | skipped | failed
     seconds: float = 0.0
     reason: str = ""
+    error: BaseException | None = field(default=None, repr=False, compare=False)
+
+
+class StagesFailed(Exception):
+    """One or more stages failed; ``outcomes`` has every stage's result, ``first`` the first error."""
+
+    def __init__(self, outcomes: list[StageOutcome], first: BaseException) -> None:
+        names = [o.stage for o in outcomes if o.action == "failed"]
+        more = f" (and {', '.join(names[1:])})" if names[1:] else ""
+        super().__init__(f"stage '{names[0]}' failed: {first}{more}")
+        self.outcomes = outcomes
+        self.first = first
+
+    @property
+    def user_error(self) -> bool:
+        """All failures are user errors (exit code 2) rather than bugs (exit code 1)."""
+        return all(isinstance(o.error, UserError) for o in self.outcomes if o.error is not None)
 
 
 class Runner:
@@ -212,8 +229,12 @@ class Runner:
                 raise UserError(f"stage '{name}' cannot run: {reason}")
         return out, skipped
 
-    def run(self, targets: Iterable[str], force: Iterable[str] = ()) -> list[StageOutcome]:
-        """Bring ``targets`` up to date: run missing or stale stages (and upstream), skip cached ones."""
+    def run(self, targets: Iterable[str], force: Iterable[str] = (), keep_going: bool = True) -> list[StageOutcome]:
+        """Bring ``targets`` up to date: run missing or stale stages (and upstream), skip cached ones.
+
+        With ``keep_going`` a failing stage does not stop stages that do not depend on it; when any stage
+        failed, :class:`StagesFailed` is raised at the end carrying every outcome.
+        """
         wanted, outcomes = self.resolve_targets(targets)
         force = set(force)
         if "all" in force:
@@ -222,7 +243,14 @@ class Runner:
         with self.store.lock():
             for note in self.store.recover():
                 self.console.print(f"[yellow]note[/] {self.seq.name}: {note}")
+            failed: list[StageOutcome] = []
             for name in plan:
+                blocked = [d for d in self.inputs_of(name) if any(f.stage == d for f in failed)]
+                if blocked:
+                    skip = StageOutcome(name, "skipped", reason=f"input '{blocked[0]}' failed")
+                    outcomes.append(skip)
+                    failed.append(skip)
+                    continue
                 st = self.stage_status(name)
                 if st.state == "done" and name not in force:
                     outcomes.append(StageOutcome(name, "cached", st.seconds or 0.0))
@@ -234,9 +262,22 @@ class Runner:
                     continue
                 why = "forced" if name in force else (st.reason if st.state == "stale" else st.state)
                 self.console.print(f"[bold]{name:<9}[/] running ({why})")
-                seconds = self._execute(name)
+                try:
+                    seconds = self._execute(name)
+                except Exception as exc:
+                    if not keep_going:
+                        raise
+                    bad = StageOutcome(name, "failed", reason=str(exc).splitlines()[0] if str(exc) else repr(exc),
+                                       error=exc)
+                    outcomes.append(bad)
+                    failed.append(bad)
+                    self.console.print(f"[red]{name:<9} failed[/]: {bad.reason}")
+                    continue
                 outcomes.append(StageOutcome(name, "ran", seconds, why))
                 self.console.print(f"[green]{name:<9} done[/] in {seconds:.1f} s")
+        errors = [o for o in outcomes if o.error is not None]
+        if errors:
+            raise StagesFailed(outcomes, errors[0].error)  # type: ignore[arg-type]
         return outcomes
 
     def _reuse(self, name: str) -> bool:

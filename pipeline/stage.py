@@ -85,13 +85,15 @@ class Stage(ABC):
 
 @cache
 def source_digest(cls: type) -> str:
-    """Short sha256 over the ``.py`` files of the package that defines ``cls``."""
+    """Short sha256 over the stage's source: its package's ``.py`` files (``stages/<name>/``) when it is
+    defined in a ``stage.py``, else just its module file."""
     module_file = inspect.getsourcefile(cls)
     if module_file is None:
         return "unknown"
-    folder = Path(module_file).parent
+    path = Path(module_file)
+    files = sorted(path.parent.glob("*.py")) if path.name == "stage.py" else [path]
     h = hashlib.sha256()
-    for f in sorted(folder.glob("*.py")):
+    for f in files:
         h.update(f.name.encode())
         h.update(f.read_bytes())
     return h.hexdigest()[:12]

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.errors import LockHeldError, UserError
-from pipeline.runner import Runner
+from pipeline.runner import Runner, StagesFailed
 from pipeline.sequences import SequenceInfo
 from pipeline.store import RunStore
 from schemas import read_artifact
@@ -78,8 +78,12 @@ def test_failing_stage_keeps_previous_result_and_leaves_no_temp(tmp_path: Path) 
     make_runner(tmp_path).run(["all"])
     stage_dir = tmp_path / "toyseq" / "square"
     before = {p.name: p.read_bytes() for p in stage_dir.iterdir()}
-    with pytest.raises(RuntimeError, match="boom midway"):
+    with pytest.raises(StagesFailed, match="stage 'square' failed: boom midway") as err:
         make_runner(tmp_path, {"square": {"fail_midway": True}}).run(["all"])
+    assert {o.stage: o.action for o in err.value.outcomes} == {"make_numbers": "cached", "square": "failed"}
+    assert not err.value.user_error
+    with pytest.raises(RuntimeError, match="boom midway"):
+        make_runner(tmp_path, {"square": {"fail_midway": True}}).run(["all"], keep_going=False)
     after = {p.name: p.read_bytes() for p in stage_dir.iterdir()}
     assert after == before
     assert not list((tmp_path / "toyseq").glob(".tmp-*"))
