@@ -38,9 +38,9 @@ class FilterParams(StageParams):
     min_intensity: float = Field(5.0, description="intensity gate, in the radar's intensity unit (REVE min_db, dB)")
     estimator_max_azimuth_deg: float = Field(56.5, gt=0, le=180,
                                              description="|azimuth| limit of points used for the ego-velocity (REVE)")
-    estimator_max_elevation_deg: float = Field(22.5, gt=0, le=90,
-                                               description="|elevation| limit of points used for the ego-velocity "
-                                                           "(REVE)")
+    estimator_max_elevation_deg: float = Field(
+        45.0, gt=0, le=90, description="|elevation| limit of points used for the ego-velocity (ColoRadar tools' "
+                                       "+-45 deg field of view; REVE's own sensor used 22.5)")
     inlier_threshold_mps: float = Field(0.15, gt=0, description="RANSAC Doppler inlier threshold (REVE)")
     outlier_probability: float = Field(0.4, gt=0, lt=1, description="assumed outlier fraction for the RANSAC count")
     success_probability: float = Field(0.9999, gt=0, lt=1, description="RANSAC success probability")
