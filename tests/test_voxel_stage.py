@@ -131,3 +131,14 @@ def test_voxel_stage_bad_calibration(tmp_path: Path, ingest_dir: Path) -> None:
     (bad / "calibration.json").write_text(json.dumps(calib))
     with pytest.raises(UserError, match=r"calibration.json: 'base_from_lidar' must be a 4x4"):
         _run(tmp_path, VoxelParams(), {"ingest": bad})
+
+
+def test_voxel_stage_without_groundtruth(tmp_path: Path, ingest_dir: Path) -> None:
+    bare = tmp_path / "ingest"
+    bare.mkdir()
+    for f in ingest_dir.iterdir():
+        (bare / f.name).write_bytes(f.read_bytes())
+    empty = {c: np.zeros(0) for c in ("x", "y", "z", "qx", "qy", "qz", "qw")}
+    write_artifact({"t_ns": np.zeros(0, np.int64), **empty}, bare / "groundtruth.parquet", "groundtruth")
+    with pytest.raises(UserError, match=r"groundtruth.parquet: no ground-truth poses; .*voxel.trajectory=odometry"):
+        _run(tmp_path, VoxelParams(), {"ingest": bare})

@@ -108,6 +108,11 @@ class VoxelStage(Stage):
         gt_xyz = np.stack([gt.column(c).to_numpy() for c in ("x", "y", "z")], axis=1)
         gt_q = np.stack([gt.column(c).to_numpy() for c in ("qx", "qy", "qz", "qw")], axis=1)
         model = SensorModel(p.prob_hit, p.prob_miss, p.clamp_min, p.clamp_max, p.occupancy_threshold)
+        if len(gt_t) == 0:
+            if p.trajectory == "groundtruth":
+                raise UserError(f"{ctx.input('ingest', 'groundtruth.parquet')}: no ground-truth poses; build the radar "
+                                "map along another trajectory with --set voxel.trajectory=odometry")
+            ctx.warn("no ground-truth poses: the lidar map is empty")
 
         def gt_poses(t: npt.NDArray[np.int64]) -> tuple[F64, npt.NDArray[np.bool_]]:
             if len(gt_t) == 0:
