@@ -60,6 +60,58 @@ def point_dtype(fields: Sequence[Field], point_step: int, big_endian: bool,
                      "offsets": [f.offset for f in wanted], "itemsize": point_step})
 
 
+@dataclass(frozen=True)
+class Layout:
+    """A prepared point layout: the structured dtype of the wanted fields and the output mapping."""
+
+    dtype: np.dtype[Any]
+    columns: tuple[tuple[str, str], ...]
+    point_step: int
+
+
+def prepare(fields: Sequence[Field], point_step: int, is_bigendian: bool, columns: Mapping[str, str]) -> Layout:
+    """Check the wanted fields exist and build their dtype (reusable for every message with this layout)."""
+    by_name = {f.name: f for f in fields}
+    missing = [src for src in columns.values() if src not in by_name]
+    if missing:
+        have = ", ".join(f.name for f in fields) or "none"
+        raise PointCloudError(f"missing field(s) {', '.join(missing)} (message has: {have})")
+    if point_step <= 0:
+        raise PointCloudError(f"point_step {point_step} is not positive")
+    dt = point_dtype(fields, point_step, is_bigendian, names=sorted(set(columns.values())))
+    return Layout(dt, tuple(columns.items()), int(point_step))
+
+
+def view(layout: Layout, data: bytes | bytearray | memoryview | npt.NDArray[np.uint8], *, row_step: int, width: int,
+         height: int, dtype: npt.DTypeLike = np.float32) -> dict[str, npt.NDArray[Any]]:
+    """Decode one buffer with a prepared layout into flat, native-order arrays of ``dtype``."""
+    point_step = layout.point_step
+    n = int(width) * int(height)
+    out_dtype = np.dtype(dtype)
+    if n == 0:
+        return {k: np.zeros(0, out_dtype) for k, _ in layout.columns}
+    row_step = int(row_step) if height > 1 or row_step else width * point_step
+    if row_step < width * point_step:
+        raise PointCloudError(f"row_step {row_step} is smaller than width*point_step {width * point_step}")
+    buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8)
+    need = (height - 1) * row_step + width * point_step
+    if buf.size < need:
+        raise PointCloudError(f"data holds {buf.size} bytes, the layout needs {need}")
+    if height == 1 or row_step == width * point_step:
+        points = np.ndarray((n,), dtype=layout.dtype, buffer=buf.data if buf.flags.c_contiguous else buf.copy().data)
+    else:
+        rows = np.lib.stride_tricks.as_strided(buf, shape=(height, width * point_step), strides=(row_step, 1))
+        packed = np.ascontiguousarray(rows).reshape(-1)
+        points = np.ndarray((n,), dtype=layout.dtype, buffer=packed.data)
+    out: dict[str, npt.NDArray[Any]] = {}
+    for name, src in layout.columns:
+        col = points[src]
+        if col.ndim > 1:  # count > 1: keep the first element
+            col = col[:, 0]
+        out[name] = col.astype(out_dtype)  # copies: native byte order, contiguous
+    return out
+
+
 def decode(
     fields: Sequence[Field],
     data: bytes | bytearray | memoryview | npt.NDArray[np.uint8],
@@ -76,38 +128,10 @@ def decode(
 
     Raises :class:`PointCloudError` when a field is missing or the buffer is shorter than the layout.
     """
-    by_name = {f.name: f for f in fields}
-    missing = [src for src in columns.values() if src not in by_name]
-    if missing:
-        have = ", ".join(f.name for f in fields) or "none"
-        raise PointCloudError(f"missing field(s) {', '.join(missing)} (message has: {have})")
-    n = int(width) * int(height)
-    out_dtype = np.dtype(dtype)
-    if n == 0:
-        return {k: np.zeros(0, out_dtype) for k in columns}
-    if point_step <= 0:
-        raise PointCloudError(f"point_step {point_step} is not positive")
-    row_step = int(row_step) if height > 1 or row_step else width * point_step
-    if row_step < width * point_step:
-        raise PointCloudError(f"row_step {row_step} is smaller than width*point_step {width * point_step}")
-    buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8)
-    need = (height - 1) * row_step + width * point_step
-    if buf.size < need:
-        raise PointCloudError(f"data holds {buf.size} bytes, the layout needs {need}")
-    dt = point_dtype(fields, point_step, is_bigendian, names=sorted(set(columns.values())))
-    if height == 1 or row_step == width * point_step:
-        points = np.ndarray((n,), dtype=dt, buffer=buf.data if buf.flags.c_contiguous else buf.copy().data)
-    else:
-        rows = np.lib.stride_tricks.as_strided(buf, shape=(height, width * point_step), strides=(row_step, 1))
-        packed = np.ascontiguousarray(rows).reshape(-1)
-        points = np.ndarray((n,), dtype=dt, buffer=packed.data)
-    out: dict[str, npt.NDArray[Any]] = {}
-    for name, src in columns.items():
-        col = points[src]
-        if col.ndim > 1:  # count > 1: keep the first element
-            col = col[:, 0]
-        out[name] = col.astype(out_dtype)  # copies: native byte order, contiguous
-    return out
+    if int(width) * int(height) == 0:
+        return {k: np.zeros(0, np.dtype(dtype)) for k in columns}
+    layout = prepare(fields, point_step, is_bigendian, columns)
+    return view(layout, data, row_step=row_step, width=width, height=height, dtype=dtype)
 
 
 def decode_message(msg: Any, columns: Mapping[str, str], dtype: npt.DTypeLike = np.float32

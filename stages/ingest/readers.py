@@ -235,7 +235,7 @@ class BagSource(Source):
         wanted = set(by_topic) | set(self.tf_topics)
         conns = [c for c in self.reader.connections if c.topic in wanted]
         counters = dict.fromkeys(self.streams, 0)
-        mappings: dict[str, dict[str, str]] = {}
+        layouts: dict[Any, pc2.Layout] = {}
         errors = _read_errors()
         it = self.reader.messages(connections=conns)
         conn: Any = None
@@ -262,7 +262,7 @@ class BagSource(Source):
                                   frame=msg.header.frame_id, record_time=stamp == 0)
                     counters[stream] += 1
                     if stream in POINT_STREAMS:
-                        out.columns = self._decode_cloud(stream, msg, mappings)
+                        out.columns = self._decode_cloud(stream, msg, layouts)
                     elif stream == "imu":
                         a, w = msg.linear_acceleration, msg.angular_velocity
                         out.values = np.array([a.x, a.y, a.z, w.x, w.y, w.z], dtype=np.float64)
@@ -272,25 +272,27 @@ class BagSource(Source):
         finally:
             self.reader.close()
 
-    def _decode_cloud(self, stream: str, msg: Any, mappings: dict[str, dict[str, str]]) -> dict[str, Any]:
-        fields = pc2.fields_of(msg)
-        key = stream + "|" + ",".join(f.name for f in fields)
-        mapping = mappings.get(key)
-        if mapping is None:
-            wanted = dict(self.profile.radar_fields if stream == "radar" else self.profile.lidar_fields)
-            for col, name in self.field_overrides.items():
-                if col.startswith(stream + "_"):
-                    wanted[col.removeprefix(stream + "_")] = [name]
-            mapping, missing = pc2.resolve_fields(fields, wanted)
-            if missing:
-                raise UserError(
-                    f"{self.path}: topic '{self.streams[stream]}' lacks field(s) for {', '.join(missing)} "
-                    f"(candidates {[wanted[m] for m in missing]}; message has: {', '.join(f.name for f in fields)}); "
-                    f"map them with --set ingest.{stream}_{missing[0]}_field=NAME"
-                )
-            mappings[key] = mapping
+    def _decode_cloud(self, stream: str, msg: Any, layouts: dict[Any, pc2.Layout]) -> dict[str, Any]:
+        key = (stream, int(msg.point_step), bool(msg.is_bigendian),
+               tuple((f.name, f.offset, f.datatype, f.count) for f in msg.fields))
+        layout = layouts.get(key)
         try:
-            return pc2.decode_message(msg, mapping)
+            if layout is None:
+                fields = pc2.fields_of(msg)
+                wanted = dict(self.profile.radar_fields if stream == "radar" else self.profile.lidar_fields)
+                for col, name in self.field_overrides.items():
+                    if col.startswith(stream + "_"):
+                        wanted[col.removeprefix(stream + "_")] = [name]
+                mapping, missing = pc2.resolve_fields(fields, wanted)
+                if missing:
+                    raise UserError(
+                        f"{self.path}: topic '{self.streams[stream]}' lacks field(s) for {', '.join(missing)} "
+                        f"(candidates {[wanted[m] for m in missing]}; message has: "
+                        f"{', '.join(f.name for f in fields)}); "
+                        f"map them with --set ingest.{stream}_{missing[0]}_field=NAME"
+                    )
+                layout = layouts[key] = pc2.prepare(fields, int(msg.point_step), bool(msg.is_bigendian), mapping)
+            return pc2.view(layout, msg.data, row_step=int(msg.row_step), width=int(msg.width), height=int(msg.height))
         except pc2.PointCloudError as exc:
             raise UserError(f"{self.path}: topic '{self.streams[stream]}': malformed PointCloud2 ({exc})") from exc
 

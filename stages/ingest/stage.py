@@ -176,11 +176,7 @@ class _Ingest:
         st.last_t_ns = msg.t_ns
         if msg.stream == "imu":
             assert msg.values is not None
-            if not np.isfinite(msg.values).all():
-                st.nonfinite_dropped += 1
-                return
-            st.points += 1
-            self.imu_buf.append((msg.t_ns, msg.values))
+            self.imu_buf.append((msg.t_ns, msg.values))  # non-finite samples are dropped in _flush_imu
             if len(self.imu_buf) >= 65536:
                 self._flush_imu()
             return
@@ -214,6 +210,12 @@ class _Ingest:
         t = np.fromiter((x[0] for x in self.imu_buf), np.int64, len(self.imu_buf))
         v = np.stack([x[1] for x in self.imu_buf])
         self.imu_buf = []
+        ok = np.isfinite(v).all(axis=1)
+        st = self.stats["imu"]
+        st.nonfinite_dropped += int((~ok).sum())
+        st.points += int(ok.sum())
+        if not ok.all():
+            t, v = t[ok], v[ok]
         names = ("ax", "ay", "az", "gx", "gy", "gz")
         self.writers["imu"].write({"t_ns": t, **{c: v[:, i] for i, c in enumerate(names)}})
 
