@@ -65,7 +65,8 @@ class SequenceInfo:
 
     def simulated_path(self) -> Path:
         spec = json.dumps(
-            {"world": self.world, "duration": self.duration, "seed": self.seed, "format": self.format},
+            {"world": self.world, "duration": self.duration, "seed": self.seed, "format": self.format,
+             **_simulator_fingerprint(self.world or self.name)},
             sort_keys=True,
         )
         digest = hashlib.sha256(spec.encode()).hexdigest()[:10]
@@ -91,6 +92,15 @@ class SequenceInfo:
             raise UserError(f"sequence '{self.name}': no data found (looked for {tried}, ...); "
                             f"download {self.run} or use --source PATH")
         raise UserError(f"sequence '{self.name}': source {self.expected_locations()[0]} does not exist")
+
+
+def _simulator_fingerprint(world: str) -> dict[str, str]:
+    """Simulator code and world-file hashes, so a changed simulator or world regenerates the sequence."""
+    try:
+        from simulator import cache_fingerprint
+    except ImportError:
+        return {}
+    return cache_fingerprint(world)
 
 
 def _registry_path() -> Path:

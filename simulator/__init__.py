@@ -10,6 +10,7 @@ The formats written are documented, with the evidence, in ``data/datasets/colora
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import time
@@ -27,6 +28,22 @@ if TYPE_CHECKING:
 
 FORMATS = ("bag", "folder")
 MAX_DURATION_S = 3600.0
+
+
+def cache_fingerprint(world: str) -> dict[str, str]:
+    """Hashes of the simulator's code and of the world file: a cached simulated sequence made by other code
+    or from another version of the world is not reused (``SequenceInfo.simulated_path`` includes them)."""
+    from simulator.world import worlds_dir
+
+    code = hashlib.sha256()
+    for f in sorted(Path(__file__).parent.glob("*.py")):
+        code.update(f.name.encode())
+        code.update(f.read_bytes())
+    out = {"simulator": code.hexdigest()[:12]}
+    wf = worlds_dir() / f"{world}.toml"
+    if wf.is_file():
+        out["world_file"] = hashlib.sha256(wf.read_bytes()).hexdigest()[:12]
+    return out
 
 
 def sidecar_path(log: Path) -> Path:

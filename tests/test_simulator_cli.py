@@ -134,3 +134,15 @@ def test_resolve_source_generates_on_first_use(tmp_path: Path, monkeypatch: pyte
     assert p == seq.simulated_path() and p.suffix == ".bag" and p.exists()
     mtime = p.stat().st_mtime_ns
     assert seq.resolve_source() == p and p.stat().st_mtime_ns == mtime
+
+
+def test_cached_sequence_path_follows_simulator_code_and_world_file(monkeypatch: pytest.MonkeyPatch) -> None:
+    import simulator
+
+    seq = SequenceInfo(name="demo", kind="simulated", world="demo", duration=60.0, seed=0, format="bag")
+    fp = simulator.cache_fingerprint("demo")
+    assert set(fp) == {"simulator", "world_file"}
+    a = seq.simulated_path()
+    assert seq.simulated_path() == a
+    monkeypatch.setattr(simulator, "cache_fingerprint", lambda world: {**fp, "world_file": "edited"})
+    assert seq.simulated_path() != a and seq.simulated_path().name == "demo.bag"
