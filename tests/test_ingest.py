@@ -282,3 +282,35 @@ def test_memory_stays_bounded_on_long_bags(tmp_path: Path) -> None:
     long = _peak_ingest_memory(tmp_path, 120)
     assert long < 1.3 * short
     assert long < 0.5 * 120 * 5000 * 48  # well under the bag's lidar payload
+
+
+def test_no_return_points_are_dropped_and_counted(tmp_path: Path) -> None:
+    sc = make_scene()
+    for k in ("x", "y", "z"):
+        sc.lidar[1][1][k][:7] = 0.0  # the Ouster driver's organised cloud: missing returns at the origin
+    out = ingest(write_log(tmp_path / "log", sc, "ros1"), tmp_path / "runs")
+    stats = manifest(out)["stats"]
+    assert stats["zero_points_dropped"] == {"radar": 0, "lidar": 7}
+    lidar = read_artifact(out / "lidar.parquet", "lidar")
+    assert lidar.num_rows == sum(len(c["x"]) for _, c in sc.lidar) - 7
+
+
+def test_shared_dataset_calib_folder_beside_the_run(tmp_path: Path) -> None:
+    run = write_log(tmp_path / "dataset" / "run0", make_scene(), "folder")
+    (run / "calib").rename(tmp_path / "dataset" / "calib")  # the real dataset keeps one calib/ for all runs
+    out = ingest(run, tmp_path / "runs")
+    calib = json.loads((out / "calibration.json").read_text())
+    np.testing.assert_allclose(calib["base_from_radar"], pose_matrix(*BASE_FROM_RADAR), atol=1e-9)
+    assert calib["sources"]["radar"] == "file calib/transforms/base_to_single_chip.txt"
+
+
+def test_log_without_tf_uses_the_profile_extrinsics_with_a_warning(tmp_path: Path) -> None:
+    from stages.ingest.profile import load_profile
+
+    bag = write_log(tmp_path / "log", make_scene(), "ros1", skip=("/tf_static",))
+    out = ingest(bag, tmp_path / "runs")
+    calib = json.loads((out / "calibration.json").read_text())
+    prof = load_profile("coloradar")
+    np.testing.assert_allclose(calib["base_from_lidar"], prof.extrinsics.lidar.matrix(), atol=1e-12)
+    assert calib["sources"]["lidar"] == "profile 'coloradar' default"
+    assert any("no tf" in w for w in manifest(out)["stats"]["warnings"])

@@ -386,10 +386,14 @@ class FolderSource(Source):
                 self.times[stream] = read_timestamps(path / ts_file)
                 self.streams[stream] = ts_file
                 self.counts[stream] = len(self.times[stream])
+        # calib/ inside the run (a self-contained run), else the dataset's shared calib/ beside the runs
         for sensor in ("radar", "lidar", "imu"):
-            f = path / getattr(lay, f"calib_{sensor}")
-            if f.exists():
-                self.calibration[sensor] = (read_transform_file(f), str(f.relative_to(path)))
+            rel = getattr(lay, f"calib_{sensor}")
+            for base in (path, path.parent):
+                f = base / rel
+                if f.exists():
+                    self.calibration[sensor] = (read_transform_file(f), str(f.relative_to(path.parent)))
+                    break
 
     def _file_index_offset(self, template: str) -> int:
         """0 when files count from ``_0``, 1 when from ``_1``."""

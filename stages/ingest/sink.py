@@ -156,6 +156,7 @@ class StreamStats:
     messages: int = 0
     points: int = 0
     nonfinite_dropped: int = 0
+    zero_dropped: int = 0
     backwards: int = 0
     out_of_order_dropped: int = 0
     record_time_used: int = 0

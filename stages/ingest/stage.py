@@ -70,7 +70,9 @@ class IngestStage(Stage):
         dataset = params.dataset or seq.dataset
         out: dict[str, Any] = {"profile": dataset, "profile_digest": _file_digest(profiles_dir() / f"{dataset}.toml")}
         if seq.kind == "simulated":
-            out["simulated"] = {"world": seq.world, "duration": seq.duration, "seed": seq.seed, "format": seq.format}
+            # the spec, plus the cache folder name: it hashes the simulator's code and world file too
+            out["simulated"] = {"world": seq.world, "duration": seq.duration, "seed": seq.seed, "format": seq.format,
+                                "cache": seq.simulated_path().parent.name}
             return out
         path = seq.locate()
         if path is None:
@@ -184,9 +186,13 @@ class _Ingest:
         cols = msg.columns
         n_all = len(cols["x"])
         ok = finite_mask(cols)
+        st.nonfinite_dropped += int(n_all - ok.sum())
+        # no-return points (x = y = z = 0, e.g. the Ouster driver's organised cloud) are not measurements
+        zero = (cols["x"] == 0) & (cols["y"] == 0) & (cols["z"] == 0)
+        st.zero_dropped += int(zero.sum())
+        ok &= ~zero
         n_bad = int(n_all - ok.sum())
         if n_bad:
-            st.nonfinite_dropped += n_bad
             cols = {k: v[ok] for k, v in cols.items()}
         n = n_all - n_bad
         scan = self.scan[msg.stream]
@@ -355,6 +361,7 @@ class _Ingest:
             ctx.warn(f"{self.labels.path}: no labels for {self.labels.unmatched_scans} radar scan(s)")
         ctx.stats["streams"] = {s: st.as_dict() for s, st in self.stats.items() if st.messages or st.points}
         ctx.stats["nonfinite_dropped"] = {s: st.nonfinite_dropped for s, st in self.stats.items()}
+        ctx.stats["zero_points_dropped"] = {s: self.stats[s].zero_dropped for s in ("radar", "lidar")}
         ctx.stats["labels"] = str(self.labels.path) if self.labels is not None else None
         n_msgs = sum(st.messages for st in self.stats.values())
         ctx.stats["read"] = {"seconds": round(seconds, 3), "messages": n_msgs, "bytes": self.src.bytes_read,
