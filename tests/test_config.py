@@ -31,7 +31,7 @@ def test_parse_set_errors() -> None:
         parse_set(["squar.offset=2"], reg)
     with pytest.raises(UserError, match=r"unknown parameter 'square.offsett'; did you mean 'square.offset'\?"):
         parse_set(["square.offsett=2"], reg)
-    with pytest.raises(UserError, match=r"unknown parameter 'square.zzz' \(parameters: offset, fail_midway\)"):
+    with pytest.raises(UserError, match=r"unknown parameter 'square.zzz' \(parameters: offset, fail_midway, "):
         parse_set(["square.zzz=2"], reg)
 
 
