@@ -18,7 +18,7 @@ from pipeline.config import describe_params, load_workflow, parse_set
 from pipeline.errors import UserError
 from pipeline.paths import default_runs_dir
 from pipeline.registry import load_stages
-from pipeline.runner import Runner, StageOutcome
+from pipeline.runner import Runner, StageOutcome, StagesFailed
 from pipeline.sequences import SequenceInfo, expand_sequences, load_registry, source_sequence
 from pipeline.store import RunStore
 
@@ -86,7 +86,14 @@ def run(
     forced = tuple(stages) if force else ()
     if len(seqs) == 1 and executor is None:
         runner = Runner(seqs[0], runs, registry, wf, overrides, console)
-        _print_outcomes(seqs[0].name, runner.run(stages, force=forced))
+        try:
+            outcomes = runner.run(stages, force=forced)
+        except StagesFailed as exc:
+            _print_outcomes(seqs[0].name, exc.outcomes)
+            if exc.user_error:
+                raise UserError(str(exc)) from None
+            raise exc.first from exc
+        _print_outcomes(seqs[0].name, outcomes)
         return
     from pipeline.executors import RunTask, make_executor, run_all
 
