@@ -95,6 +95,13 @@ def test_round_trip_every_source_form(tmp_path: Path, form: str) -> None:
     assert not stats.get("warnings")
     paths = entity_paths_in(out / "ingest.rrd")
     assert {"/world/radar/raw", "/world/lidar", "/world/groundtruth/path"} <= paths
+    from rerun.chunk import RrdReader
+
+    timelines: dict[str, set[str]] = {}
+    for ch in RrdReader(str(out / "ingest.rrd")).stream().to_chunks():
+        timelines.setdefault(str(ch.entity_path), set()).update(ch.timeline_names)
+    assert timelines["/world/radar/raw"] == {"scan", "sensor_time"}
+    assert timelines["/world/lidar"] == {"sensor_time"}  # lidar sweeps are not radar scans
 
 
 def test_missing_topic_lists_what_the_log_has(tmp_path: Path) -> None:

@@ -304,12 +304,20 @@ class _Ingest:
         if not buf:
             return
         self.rr_buf[stream] = []
-        entity = "world/radar/raw" if stream == "radar" else "world/lidar"
-        colour = (255, 140, 0) if stream == "radar" else (140, 140, 160)
-        xyz = np.concatenate([b[2] for b in buf])
-        self.ctx.recording.points_over_time(
-            entity, [b[0] for b in buf], [b[1] for b in buf], xyz, [len(b[2]) for b in buf],
-            colors=np.tile(np.asarray(colour, np.uint8), (len(xyz), 1)), radii=0.04 if stream == "radar" else 0.02)
+        import rerun as rr
+
+        from pipeline.recording import time_columns
+
+        radar = stream == "radar"
+        entity = "world/radar/raw" if radar else "world/lidar"
+        colour = np.asarray((255, 140, 0) if radar else (140, 140, 160), np.uint8)
+        xyz = np.concatenate([b[2] for b in buf]).astype(np.float32)
+        # lidar sweeps have their own clock: on the sensor_time timeline only (the scan timeline is the radar's)
+        index = time_columns([b[0] for b in buf] if radar else None, [b[1] for b in buf])
+        cols = rr.Points3D.columns(positions=xyz, colors=np.tile(colour, (len(xyz), 1)),
+                                   radii=np.full(len(xyz), 0.04 if radar else 0.02, np.float32))
+        self.ctx.recording.rec.send_columns(entity, indexes=index,
+                                            columns=cols.partition(lengths=[len(b[2]) for b in buf]))
 
     def _log_transforms(self, gt: tuple[npt.NDArray[np.int64], F64], calib: dict[str, Any]) -> None:
         """Ground truth as a path; sensor clouds placed in the world by ground truth (world <- sensor)."""
@@ -339,7 +347,7 @@ class _Ingest:
             T, _ = interpolate_poses(t, v, times)
             T = T @ np.asarray(calib[f"base_from_{stream}"])
             quat = matrices_to_poses(T)[:, 3:]
-            rec.rec.send_columns(entity, indexes=time_columns(scans, times),
+            rec.rec.send_columns(entity, indexes=time_columns(scans if stream == "radar" else None, times),
                                  columns=rr.Transform3D.columns(translation=T[:, :3, 3], quaternion=quat))
 
     def _report(self, seconds: float) -> None:
