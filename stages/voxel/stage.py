@@ -15,6 +15,11 @@ height ``se2_height`` (default: the first ground-truth height, i.e. the same ini
 trajectory is anchored to; 0 without ground truth). Poses at sensor times: linear position and slerp
 rotation between ground-truth samples; scans outside the trajectory's time span are skipped (counted).
 
+Cost: the radar fan (10,816 rays to 10 m, about 1.1 M voxel crossings per scan) takes about 40 ms of
+CPU per radar scan whatever the number of returns (about 25 s for a 60 s sequence at 10 Hz); the lidar
+ray casting runs at about 1e5 points/s (``lidar_stride`` inserts every k-th scan when lidar scans are
+dense, e.g. a full OS1-64).
+
 Writes the occupied voxel centres with their log-odds (``radar_map.parquet``, ``lidar_map.parquet``),
 optionally OctoMap ``.bt`` files (when the ``octomap`` binding is importable), and logs both maps to
 Rerun (``world/voxel/radar``, ``world/voxel/lidar``, static, coloured by height).
