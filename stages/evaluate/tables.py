@@ -28,6 +28,8 @@ def fmt(v: Any, digits: int = 3) -> str:
         return "–"
     if isinstance(v, int) or (isinstance(v, float) and v.is_integer() and abs(v) >= 1000):
         return f"{int(v)}"
+    if v != 0 and abs(v) < 0.5 * 10**-digits:
+        return f"{v:.{max(digits - 1, 1)}e}"  # too small for the fixed-point digits: keep it visible
     return f"{v:.{digits}f}"
 
 

@@ -11,6 +11,7 @@ initial guess is returned.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -52,8 +53,10 @@ class PlanProblem:
                 "occupancy": float(o.max() - self.o_max),
                 "domain": float(dom)}
 
-    def feasible(self, path: F64, tol: float = 1e-6) -> bool:
-        return all(v <= tol for v in self.violations(path).values())
+    def feasible(self, path: F64, tol_step: float = 1e-3, tol_occupancy: float = 1e-4) -> bool:
+        """All constraints hold, the step bound to ``tol_step`` metres and the occupancy to ``tol_occupancy``."""
+        v = self.violations(path)
+        return v["step"] <= tol_step and v["occupancy"] <= tol_occupancy and v["domain"] <= 1e-9
 
 
 @dataclass(frozen=True)
@@ -118,20 +121,31 @@ def refine(problem: PlanProblem, initial: F64, max_iter: int = 200, ftol: float 
 
     bounds = [(problem.lo[i % 2], problem.hi[i % 2]) for i in range(2 * n)]
     x0 = np.clip(init[1:-1].ravel(), [bd[0] for bd in bounds], [bd[1] for bd in bounds])
+    # eq. 34 sums the cost over waypoints, so waypoints may keep sliding towards cheap cells up to the step
+    # bound and SLSQP can stop at its iteration limit slightly outside the constraints: keep the best
+    # feasible iterate seen, not only the last one
+    best: dict[str, Any] = {"path": init, "cost": c0 if problem.feasible(init) else np.inf, "iter": 0}
+    it = [0]
+
+    def consider(x: F64) -> None:
+        it[0] += 1
+        P = full(np.asarray(x))
+        if problem.feasible(P):
+            c = problem.cost(P)
+            if c < best["cost"]:
+                best.update(path=P, cost=c, iter=it[0])
+
     res = minimize(objective, x0, jac=True, method="SLSQP", bounds=bounds,
                    constraints=[{"type": "ineq", "fun": step_con, "jac": step_jac},
                                 {"type": "ineq", "fun": occ_con, "jac": occ_jac}],
-                   options={"maxiter": max_iter, "ftol": ftol})
-    cand = full(np.asarray(res.x))
-    c1 = problem.cost(cand)
-    init_ok = problem.feasible(init)
-    ok = problem.feasible(cand) and (c1 <= c0 or not init_ok)
+                   options={"maxiter": max_iter, "ftol": ftol}, callback=consider)
+    consider(np.asarray(res.x))
     msg = str(res.message)
-    if not ok:
-        why = "infeasible" if not problem.feasible(cand) else "costlier"
-        return RefineResult(init, c0, c0, False, f"kept the initial guess: SLSQP result {why} ({msg})",
-                            int(res.nit))
-    return RefineResult(cand, c0, c1, True, msg, int(res.nit))
+    if best["path"] is init:
+        why = "no feasible iterate" if not np.isfinite(best["cost"]) else "no cheaper feasible iterate"
+        return RefineResult(init, c0, c0, False, f"kept the initial guess: {why} ({msg})", int(res.nit))
+    note = "" if res.success else f"; best feasible iterate {best['iter']} of {res.nit}"
+    return RefineResult(best["path"], c0, float(best["cost"]), True, msg + note, int(res.nit))
 
 
 def resample_polyline(points: F64, spacing: float) -> F64:

@@ -48,7 +48,7 @@ class PlanParams(StageParams):
     eps: float = Field(1e-3, gt=0, description="epsilon of the uncertainty-aware cost (eq. 35)")
     domain_margin: float = Field(0.5, ge=0, description="distance kept from the Hilbert domain's edge (m): the "
                                  "domain bound Omega of eq. 34")
-    max_iter: int = Field(200, ge=1, description="SLSQP iteration limit")
+    max_iter: int = Field(300, ge=1, description="SLSQP iteration limit")
 
     @model_validator(mode="after")
     def _check(self) -> PlanParams:
