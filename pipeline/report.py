@@ -195,7 +195,7 @@ def sweep_tables(records: Sequence[dict[str, Any]]) -> list[tuple[str, list[str]
         if agg:
             counts = sorted({a[1] for a in agg})
             methods = list(dict.fromkeys(a[0] for a in agg))
-            cell = {(a[0], a[1]): f"{a[2]:.3f} ± {a[3]:.3f}" for a in agg}
+            cell = {(a[0], a[1]): f"{a[2]:.3f}±{a[3]:.3f}" for a in agg}
             n = max(a[4] for a in agg)
             out.append((f"{s}: AUC per number of map features, mean ± std over {n} point(s)",
                         ["method", *map(str, counts)], [[m, *[cell.get((m, c), "–") for c in counts]]

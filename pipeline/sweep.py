@@ -261,7 +261,9 @@ def plot_auc_vs_features(path: Path, records: Sequence[Mapping[str, Any]], seqs:
     axes[0][0].set_ylabel("AUC (held-out scans), mean ± std over seeds")
     axes[0][0].legend(fontsize=8)
     if title:
-        fig.suptitle(title, fontsize=10)
+        import textwrap
+
+        fig.suptitle(textwrap.fill(title, 30 + 45 * n), fontsize=10)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
@@ -279,6 +281,8 @@ def plot_hyperparameter_grid(path: Path, root: Path, points: Sequence[SweepPoint
     cols_vals = list(dict.fromkeys(json.dumps(p.values()[keys[1]]) for p in points)) if len(keys) > 1 else [""]
     auc = {r["point"]: r["value"] for r in records
            if r["seq"] == seq and r["method"] == method and r["metric"] == "auc"}
+    ell = {r["point"]: r["value"] for r in records
+           if r["seq"] == seq and r["method"] == method and r["metric"] == "lengthscale_m"}
     fig, axes = plt.subplots(len(rows_vals), len(cols_vals), figsize=(4.2 * len(cols_vals), 3.4 * len(rows_vals)),
                              squeeze=False, constrained_layout=True)
     im = None
@@ -299,8 +303,10 @@ def plot_hyperparameter_grid(path: Path, root: Path, points: Sequence[SweepPoint
         else:
             ax.text(0.5, 0.5, "no map", ha="center", va="center", transform=ax.transAxes)
         label = ", ".join(f"{k.split('.', 1)[1]}={val}" for k, val in v.items())
-        a = auc.get(p.name)
-        ax.set_title(label + (f"\nAUC {a:.3f}" if a is not None else ""), fontsize=9)
+        a, lm = auc.get(p.name), ell.get(p.name)
+        sub = ", ".join(s for s in (f"l = {lm:g} m" if lm is not None else "",
+                                    f"AUC {a:.3f}" if a is not None else "") if s)
+        ax.set_title(label + ("\n" + sub if sub else ""), fontsize=9)
         ax.set_aspect("equal")
         ax.tick_params(labelsize=7)
     if im is not None:

@@ -136,7 +136,7 @@ def test_sweep_runs_points_shares_upstream_and_gathers(tmp_path: Path) -> None:
     tabs = {t[0]: t for t in sweep_tables(recs)}
     agg = tabs["toyseq: AUC per number of map features, mean ± std over 2 point(s)"]
     assert agg[1] == ["method", "16", "64"]
-    assert agg[2][0] == ["hilbert_gp", "0.621 ± 0.005", "0.669 ± 0.005"]
+    assert agg[2][0] == ["hilbert_gp", "0.621±0.005", "0.669±0.005"]
     # a second run is cached everywhere
     again = run_sweep(str(wf), [seq], runs, registry="tests.test_sweep:toy_registry")
     assert all(o.action == "cached" for r in again.results for o in r.outcomes)

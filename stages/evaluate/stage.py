@@ -264,6 +264,9 @@ class EvaluateStage(Stage):
             signal_variance=p.gp_signal_variance or post["signal_variance"],
             noise_variance=p.gp_noise_variance or post["noise_variance"],
             basis_kind=post["basis_kind"])
+        for k, v in (("lengthscale_m", gp_cfg.lengthscale_m), ("signal_variance", gp_cfg.signal_variance),
+                     ("noise_variance", gp_cfg.noise_variance)):
+            self.add("mapping", "hilbert_gp", k, v)
         ctx.stats["gp"] = {"half_widths": list(gp_cfg.half_widths), "centre": list(gp_cfg.centre),
                            "lengthscale_m": gp_cfg.lengthscale_m, "signal_variance": gp_cfg.signal_variance,
                            "noise_variance": gp_cfg.noise_variance, "M": post["M"], "basis": gp_cfg.basis_kind}
