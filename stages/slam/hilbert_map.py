@@ -112,46 +112,67 @@ def prior(
     return theta, cov
 
 
-def _sines(basis: HilbertBasis, points: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Per-axis arguments and the in-domain mask."""
-    p = np.asarray(points, dtype=np.float64)
-    rel = p - basis.centre
-    inside = np.all(np.abs(rel) < basis.half_widths, axis=-1)
-    args = (rel + basis.half_widths)[..., None, :] * basis.frequencies  # (..., M, 2)
-    return args, inside, rel
+def axis_tables(
+    basis: HilbertBasis, points: npt.ArrayLike, derivative: bool = False
+) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray | None]:
+    """Per-axis factors of the eigenfunctions: ``phi_j(p) = a_{J_j1}(p_1) b_{J_j2}(p_2)`` (eq. 6).
 
-
-def features(basis: HilbertBasis, points: npt.ArrayLike, dtype: npt.DTypeLike = np.float64) -> FloatArray:
-    """``Phi(p)``, shape ``(..., M)`` (eq. 6, 9); zero outside the domain (Dirichlet boundary)."""
+    ``a`` carries the normalisation ``1 / sqrt(L1 L2)`` and is zero outside the domain, so products
+    of the tables are the features. With ``derivative`` also ``da/dp_1`` and ``db/dp_2``.
+    """
     p = np.asarray(points, dtype=np.float64)
     m1 = int(basis.indices[:, 0].max())
     m2 = int(basis.indices[:, 1].max())
     rel = p - basis.centre
     inside = np.all(np.abs(rel) < basis.half_widths, axis=-1)
     x = rel + basis.half_widths
-    # 1D sine tables per axis, then one gather-multiply per basis function: O(N (m1 + m2 + M))
-    s1 = np.sin(x[..., 0:1] * (np.pi * np.arange(1, m1 + 1) / (2.0 * basis.half_widths[0])))
-    s2 = np.sin(x[..., 1:2] * (np.pi * np.arange(1, m2 + 1) / (2.0 * basis.half_widths[1])))
-    norm = 1.0 / np.sqrt(basis.half_widths[0] * basis.half_widths[1])
+    w1 = np.pi * np.arange(1, m1 + 1) / (2.0 * basis.half_widths[0])
+    w2 = np.pi * np.arange(1, m2 + 1) / (2.0 * basis.half_widths[1])
+    scale = (inside / np.sqrt(basis.half_widths[0] * basis.half_widths[1]))[..., None]
+    u1, u2 = x[..., 0:1] * w1, x[..., 1:2] * w2
+    a, b = np.sin(u1) * scale, np.sin(u2)
+    if not derivative:
+        return a, b, None, None
+    return a, b, np.cos(u1) * w1 * scale, np.cos(u2) * w2
+
+
+def _combine(basis: HilbertBasis, a: FloatArray, b: FloatArray) -> FloatArray:
     if basis.kind == "tensor":
-        phi = (s1[..., :, None] * (s2[..., None, :] * norm)).reshape(*p.shape[:-1], m1 * m2)
-    else:
-        phi = s1[..., basis.indices[:, 0] - 1] * s2[..., basis.indices[:, 1] - 1] * norm
-    phi = np.where(inside[..., None], phi, 0.0)
-    return phi.astype(dtype, copy=False)
+        return (a[..., :, None] * b[..., None, :]).reshape(*a.shape[:-1], a.shape[-1] * b.shape[-1])
+    return a[..., basis.indices[:, 0] - 1] * b[..., basis.indices[:, 1] - 1]
 
 
-def feature_gradients(basis: HilbertBasis, points: npt.ArrayLike) -> FloatArray:
+def features(basis: HilbertBasis, points: npt.ArrayLike, dtype: npt.DTypeLike = np.float64) -> FloatArray:
+    """``Phi(p)``, shape ``(..., M)`` (eq. 6, 9); zero outside the domain (Dirichlet boundary).
+
+    Built from per-axis sine tables: O(N (sqrt(M) + M)) and one pass over the output.
+    """
+    a, b, _, _ = axis_tables(basis, points)
+    dt = np.dtype(dtype)
+    return _combine(basis, a.astype(dt, copy=False), b.astype(dt, copy=False))
+
+
+def feature_gradients(basis: HilbertBasis, points: npt.ArrayLike, dtype: npt.DTypeLike = np.float64) -> FloatArray:
     """``d Phi / d p``, shape ``(..., M, 2)``; zero outside the domain."""
-    args, inside, _ = _sines(basis, np.asarray(points, dtype=np.float64))
-    s = np.sin(args)
-    c = np.cos(args)
-    w = basis.frequencies
-    norm = 1.0 / np.sqrt(basis.half_widths[0] * basis.half_widths[1])
-    gx = w[:, 0] * c[..., 0] * s[..., 1]
-    gy = s[..., 0] * w[:, 1] * c[..., 1]
-    g = np.stack([gx, gy], axis=-1) * norm
-    return np.where(inside[..., None, None], g, 0.0)
+    a, b, da, db = axis_tables(basis, points, derivative=True)
+    assert da is not None and db is not None
+    dt = np.dtype(dtype)
+    gx = _combine(basis, da.astype(dt, copy=False), b.astype(dt, copy=False))
+    gy = _combine(basis, a.astype(dt, copy=False), db.astype(dt, copy=False))
+    return np.stack([gx, gy], axis=-1)
+
+
+def mean_at(basis: HilbertBasis, theta: FloatArray, points: npt.ArrayLike) -> FloatArray:
+    """``Phi(p)^T theta`` without forming ``Phi`` (tensor basis: ``a^T Theta b``), ``theta (..., M)``.
+
+    ``points`` are ``(..., K, 2)`` with the same leading shape as ``theta``.
+    """
+    if basis.kind != "tensor":
+        return np.einsum("...km,...m->...k", features(basis, points, theta.dtype), theta)
+    a, b, _, _ = axis_tables(basis, points)
+    m1, m2 = a.shape[-1], b.shape[-1]
+    T = theta.reshape(*theta.shape[:-1], m1, m2)
+    return np.einsum("...ka,...ka->...k", np.matmul(a.astype(theta.dtype), T), b.astype(theta.dtype))
 
 
 # -- queries ---------------------------------------------------------------------------------------------

@@ -1,25 +1,386 @@
-"""`slam` stage: RICH-SLAM: RBPF with Hilbert-GP occupancy maps, and baselines."""
+"""`slam` stage: RICH-SLAM (RBPF with Hilbert-GP occupancy maps) and the baselines it is compared against.
+
+Inputs: ``ingest/calibration.json`` (``base_from_radar``), ``filter/radar_filtered.parquet`` (radar
+frame), ``odometry/odometry.parquet`` (world <- base at the radar scan times). Radar points go to the
+base frame, are projected to the plane (optional height gate) and sampled along beams from the radar
+origin (Fig. 3a). Every method in ``methods`` runs over the same samples and writes
+``trajectory_<method>.parquet``; ``trajectory.parquet`` is ``method``'s. The map outputs (posterior,
+grid, per-scan uncertainty statistics) come from ``method``: its best particle's final map for the
+Hilbert methods, else a Hilbert map built along its trajectory. Units: see README.md.
+"""
 
 from __future__ import annotations
 
+import json
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+import pyarrow as pa
+import pyarrow.parquet as pq
+from pydantic import Field, model_validator
+
 from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams
+from schemas.io import read_artifact, write_artifact
+from stages.slam import hilbert_map as hm
+from stages.slam.beam_sampling import BeamSamples, radar_to_body_2d, sample_beams, to_world
+from stages.slam.grid_map import GridModel
+from stages.slam.methods import (
+    HILBERT_METHODS,
+    METHODS,
+    Method,
+    MethodResult,
+    SlamConfig,
+    domain_from_trajectory,
+    run_method,
+)
+from stages.slam.parallel import ParallelHilbertMaps
+from stages.slam.rbpf import RBPF, HilbertParticleMaps, MotionNoise
+
+F64 = npt.NDArray[np.floating[Any]]
 
 
 class SlamParams(StageParams):
-    """Parameters of the `slam` stage."""
+    """Parameters of the `slam` stage (defaults: RICH-SLAM Table II, ColoRadar profile)."""
+
+    method: Method = Field("rich_slam", description="method whose trajectory is trajectory.parquet and whose "
+                           "map is written (odometry, fastslam_grid, rich_slam, rich_slam_no_et, rich_slam_mean_only)")
+    methods: list[Method] = Field(list(METHODS), description="methods run and written as trajectory_<method>.parquet "
+                                  "(the main method always runs)")
+    n_particles: int = Field(200, ge=1, description="particles N_p (Sec. V-A2)")
+    seed: int = Field(0, description="seed of the particle filter's random generator")
+    # -- Hilbert-GP map (Table II)
+    lengthscale: float = Field(20.0, gt=0, description="SE length scale l in map units (Table II: 20)")
+    length_unit_m: float = Field(0.1, gt=0, description="metres per map unit: l in metres = lengthscale * this "
+                                 "(README: decimetres reproduce the paper's maps; 1.0 = literal metres)")
+    signal_variance: float = Field(16.0, gt=0, description="sigma_f^2 (Table II: 16 ColoRadar, 0.7 ARS548)")
+    noise_variance: float = Field(0.36, gt=0, description="sigma_n^2 (Table II: 0.36 ColoRadar, 0.1 ARS548)")
+    n_basis: int = Field(256, ge=1, description="basis functions M (a perfect square for the tensor basis)")
+    basis_kind: Literal["tensor", "circular"] = Field("tensor", description="'tensor': eq. 7; 'circular': the M "
+                                                      "smallest eigenvalues (Solin and Sarkka's code)")
+    domain_padding: float = Field(10.0, ge=0, description="Hilbert domain = odometry envelope padded by this (m)")
+    map_update: Literal["kalman", "laplace"] = Field("kalman", description="map update: Kalman (eq. 15-19) or "
+                                                     "recursive Laplace (Appendix)")
+    laplace_iterations: int = Field(20, ge=1, description="Newton iterations of the Laplace update at most")
+    map_form: Literal["information", "covariance"] = Field(
+        "information", description="particle map storage: information matrix and Cholesky factor (same posterior, "
+        "positive definite by construction, faster for dense scans) or covariance (eq. 15-19 literally)")
+    dtype: Literal["float64", "float32"] = Field("float64", description="precision of the particle maps")
+    workers: int = Field(2, ge=0, description="worker processes sharing the particle maps (information form), one "
+                         "BLAS thread each; 0 = in process")
+    # -- measurements (Sec. IV-B, Fig. 3a)
+    max_range: float = Field(5.0, gt=0, description="beams longer than this are dropped (m, Table II)")
+    min_range: float = Field(0.0, ge=0, description="beams shorter than this are dropped (m)")
+    ray_step: float = Field(1.0, gt=0, description="free-sample spacing along a beam (m, Table II)")
+    free_clearance: float = Field(0.0, ge=0, description="no free sample closer than this to the endpoint (m)")
+    z_min: float | None = Field(None, description="keep points with base-frame z >= z_min (m); None: no gate")
+    z_max: float | None = Field(None, description="keep points with base-frame z <= z_max (m); None: no gate")
+    # -- weights (Sec. IV-D2)
+    endpoint_tolerance: float = Field(0.25, ge=0, description="endpoint tolerance radius r_e (m, eq. 29)")
+    et_ring_points: int = Field(8, ge=1, description="points on each ring of the discretised r_e disc")
+    et_rings: int = Field(1, ge=1, description="rings of the discretised r_e disc")
+    et_variance: Literal["exact", "taylor"] = Field(
+        "exact", description="variance at the tolerance points: exact Phi^T cov Phi, or with Phi linearised about "
+        "the endpoint (cheaper; the mean stays exact)")
+    likelihood_exponent: float = Field(1.0, gt=0, description="exponent on the scan likelihood (1: the paper)")
+    # -- particles (Sec. IV-D1, D3)
+    motion_std_xy: float = Field(0.02, ge=0, description="process noise std on x and y per scan (m, eq. 21)")
+    motion_std_yaw: float = Field(0.005, ge=0, description="process noise std on yaw per scan (rad, eq. 21)")
+    motion_rel_trans: float = Field(0.0, ge=0, description="extra xy std per metre of odometry translation")
+    motion_rel_rot: float = Field(0.0, ge=0, description="extra yaw std per radian of odometry rotation")
+    resampling: Literal["systematic", "stratified", "multinomial"] = Field(
+        "systematic", description="resampler (systematic = low variance)")
+    resample_threshold: float = Field(0.5, gt=0, le=1, description="resample when N_eff < this * N_p (eq. 31)")
+    estimate: Literal["best_per_scan", "final_best_history"] = Field(
+        "best_per_scan", description="trajectory: the largest-weight particle at each scan (Algorithm 1) or the "
+        "final best particle's history")
+    # -- FastSLAM grid baseline
+    grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
+    grid_l_occ: float = Field(0.85, gt=0, description="fastslam_grid log-odds added at an endpoint cell")
+    grid_l_free: float = Field(-0.4, lt=0, description="fastslam_grid log-odds added along a beam")
+    grid_l_clamp: float = Field(4.0, gt=0, description="fastslam_grid log-odds clamp (+-)")
+    grid_sigma_hit: float = Field(0.2, gt=0, description="likelihood-field std of the endpoint distance (m)")
+    grid_max_dist: float = Field(0.5, gt=0, description="likelihood-field search radius / distance cap (m)")
+    grid_z_hit: float = Field(0.9, gt=0, description="likelihood-field hit weight")
+    grid_z_rand: float = Field(0.1, gt=0, description="likelihood-field random weight (keeps logs finite)")
+    # -- outputs
+    grid_spacing: float = Field(0.25, gt=0, description="spacing of the query grid of map_grid.parquet (m)")
+    stats_every: int = Field(5, ge=1, description="map_stats.parquet: uncertainty quartiles every N scans")
+    stats_spacing: float = Field(1.0, gt=0, description="map_stats.parquet: spacing of the cells summarised (m)")
+    n_map_snapshots: int = Field(8, ge=0, description="occupancy / uncertainty images logged to Rerun")
+    image_spacing: float = Field(0.25, gt=0, description="pixel size of the Rerun map images (m)")
+
+    @model_validator(mode="after")
+    def _check(self) -> SlamParams:
+        if self.basis_kind == "tensor" and round(self.n_basis**0.5) ** 2 != self.n_basis:
+            raise ValueError(f"n_basis = {self.n_basis} is not a perfect square (the tensor basis of eq. 7 needs one;"
+                             " or set basis_kind = 'circular')")
+        if self.z_min is not None and self.z_max is not None and self.z_min > self.z_max:
+            raise ValueError(f"z_min {self.z_min} > z_max {self.z_max}")
+        return self
+
+    def config(self) -> SlamConfig:
+        return SlamConfig(
+            n_particles=self.n_particles, lengthscale_m=self.lengthscale * self.length_unit_m,
+            signal_variance=self.signal_variance, noise_variance=self.noise_variance, n_basis=self.n_basis,
+            basis_kind=self.basis_kind, endpoint_tolerance=self.endpoint_tolerance,
+            et_ring_points=self.et_ring_points, et_rings=self.et_rings, et_variance=self.et_variance,
+            likelihood_exponent=self.likelihood_exponent,
+            noise=MotionNoise(self.motion_std_xy, self.motion_std_yaw, self.motion_rel_trans, self.motion_rel_rot),
+            resampling=self.resampling, resample_threshold=self.resample_threshold, map_update=self.map_update,
+            laplace_iterations=self.laplace_iterations, map_form=self.map_form, dtype=self.dtype,
+            workers=self.workers,
+            grid=GridModel(self.grid_l_occ, self.grid_l_free, -self.grid_l_clamp, self.grid_l_clamp, 0.0,
+                           self.grid_sigma_hit, self.grid_max_dist, self.grid_z_hit, self.grid_z_rand),
+            grid_resolution=self.grid_resolution, estimate=self.estimate,
+        )
 
 
 class SlamStage(Stage):
     name = "slam"
     description = "RICH-SLAM: RBPF with Hilbert-GP occupancy maps, and baselines"
-    inputs = ('ingest', 'filter', 'odometry')
+    inputs = ("ingest", "filter", "odometry")
     Params = SlamParams
-    outputs = ('trajectory.parquet', 'map_posterior.parquet', 'map_grid.parquet')
-    implemented = False
+    version = "1"
+    outputs = ("trajectory.parquet", "map_posterior.parquet", "map_grid.parquet", "map_stats.parquet")
 
     def run(self, ctx: StageContext) -> None:
-        raise UserError("stage 'slam' is not implemented yet")
+        p: SlamParams = ctx.params
+        cfg = p.config()
+        base_from_radar = read_calibration(ctx)
+        scans, t_ns, odo = read_odometry(ctx)
+        samples = read_samples(ctx, scans, base_from_radar, p)
+        half, centre = domain_from_trajectory(odo[:, :2], p.domain_padding)
+        basis = hm.make_basis(half, centre, p.n_basis, p.basis_kind)
+        n_samples = np.array([s.n for s in samples])
+        ctx.stats.update({
+            "scans": len(scans), "scans_with_samples": int(np.sum(n_samples > 0)),
+            "samples_per_scan_mean": float(n_samples.mean()) if len(n_samples) else 0.0,
+            "samples_per_scan_max": int(n_samples.max()) if len(n_samples) else 0,
+            "beams_per_scan_mean": float(np.mean([len(s.endpoints) for s in samples])) if samples else 0.0,
+            "domain": {"L1": float(half[0]), "L2": float(half[1]), "cx": float(centre[0]), "cy": float(centre[1])},
+            "lengthscale_m": cfg.lengthscale_m,
+        })
+        methods = [p.method, *[m for m in dict.fromkeys(p.methods) if m != p.method]]
+        tracker = MapTracker(basis, cfg, p, samples, scans, t_ns, ctx)
+        results: dict[str, MethodResult] = {}
+        with ctx.progress(len(methods) * len(scans), "methods") as advance:
+            for m in methods:
+                obs = tracker.observe if (m == p.method and m in HILBERT_METHODS) else None
+                res = run_method(m, odo, samples, basis, cfg, p.seed, observer=obs, on_step=advance)
+                results[m] = res
+                write_trajectory(ctx.output(f"trajectory_{m}.parquet"), scans, t_ns, res)
+                ctx.stats.setdefault("methods", {})[m] = {
+                    "seconds": round(res.seconds, 3),
+                    "seconds_per_scan": round(res.seconds / max(len(scans), 1), 5),
+                    "resamplings": res.resampled,
+                    "n_eff_median": float(np.median(res.n_eff)) if len(res.n_eff) else None,
+                }
+                ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
+                                  f"s/scan), {res.resampled} resamplings[/]")
+        main = results[p.method]
+        write_trajectory(ctx.output("trajectory.parquet"), scans, t_ns, main)
+        if main.theta is None or main.cov is None:
+            theta, cov = tracker.replay(main.poses)
+        else:
+            theta, cov = main.theta, main.cov
+        write_posterior(ctx.output("map_posterior.parquet"), basis, theta, cov, p, int(scans[-1]) if len(scans) else -1)
+        grid = query_grid(basis, theta, cov, p.grid_spacing, cfg)
+        write_artifact(grid, ctx.output("map_grid.parquet"), "map_grid", metadata={"grid_spacing": str(p.grid_spacing)})
+        tracker.write(ctx.output("map_stats.parquet"))
+        log_recording(ctx, scans, t_ns, results, p.method, tracker)
+
+
+# -- reading -----------------------------------------------------------------------------------------------------
+
+
+def read_calibration(ctx: StageContext) -> F64:
+    path = ctx.input("ingest", "calibration.json")
+    try:
+        T = np.asarray(json.loads(path.read_text())["base_from_radar"], dtype=np.float64)
+    except (KeyError, json.JSONDecodeError, ValueError, TypeError) as exc:
+        raise UserError(f"{path}: no readable 'base_from_radar' 4x4 ({exc}); rerun "
+                        f"`pipeline run ingest --seq {ctx.seq.name} --force`") from exc
+    if T.shape != (4, 4):
+        raise UserError(f"{path}: 'base_from_radar' has shape {T.shape}, expected 4x4")
+    return T
+
+
+def read_odometry(ctx: StageContext) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F64]:
+    """Scan ids, times and (x, y, yaw) of the valid odometry rows, in scan order."""
+    path = ctx.input("odometry", "odometry.parquet")
+    t = read_artifact(path, "odometry")
+    scans = t["scan"].to_numpy().astype(np.int64)
+    keep = np.ones(len(scans), dtype=bool)
+    if "valid" in t.column_names:
+        keep = t["valid"].to_numpy(zero_copy_only=False).astype(bool)
+    poses = np.stack([t[c].to_numpy().astype(np.float64) for c in ("x", "y", "yaw")], axis=1)
+    keep &= np.all(np.isfinite(poses), axis=1)
+    order = np.argsort(scans[keep], kind="stable")
+    scans, t_ns, poses = scans[keep][order], t["t_ns"].to_numpy()[keep][order], poses[keep][order]
+    if len(scans) < 2:
+        raise UserError(f"{path}: {len(scans)} valid odometry poses; the slam stage needs at least 2 "
+                        f"(rerun `pipeline run odometry --seq {ctx.seq.name} --force`)")
+    return scans, t_ns.astype(np.int64), poses
+
+
+def read_samples(ctx: StageContext, scans: npt.NDArray[np.int64], base_from_radar: F64, p: SlamParams
+                 ) -> list[BeamSamples]:
+    """Body-frame beam samples for every odometry scan (empty where the filter kept nothing)."""
+    path = ctx.input("filter", "radar_filtered.parquet")
+    t = read_artifact(path, "radar_filtered", columns=["scan", "x", "y", "z"])
+    s = t["scan"].to_numpy().astype(np.int64)
+    xyz = np.stack([t[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], axis=1)
+    order = np.argsort(s, kind="stable")
+    s, xyz = s[order], xyz[order]
+    lo = np.searchsorted(s, scans, side="left")
+    hi = np.searchsorted(s, scans, side="right")
+    out = []
+    for a, b in zip(lo, hi, strict=True):
+        pts, origin = radar_to_body_2d(xyz[a:b], base_from_radar, p.z_min, p.z_max)
+        out.append(sample_beams(pts, origin, p.ray_step, p.max_range, p.min_range, p.free_clearance))
+    ctx.stats["radar_points_used"] = int(sum(len(o.endpoints) for o in out))
+    return out
+
+
+# -- map statistics and snapshots (Fig. 10, Rerun images) -------------------------------------------------------------
+
+
+class MapTracker:
+    """Per-scan uncertainty quartiles of the best particle's map and a few map snapshots."""
+
+    def __init__(self, basis: hm.HilbertBasis, cfg: SlamConfig, p: SlamParams, samples: list[BeamSamples],
+                 scans: npt.NDArray[np.int64], t_ns: npt.NDArray[np.int64], ctx: StageContext) -> None:
+        self.basis, self.cfg, self.p, self.samples = basis, cfg, p, samples
+        self.scans, self.t_ns = scans, t_ns
+        lo, hi = basis.centre - basis.half_widths, basis.centre + basis.half_widths
+        gx = np.arange(lo[0] + p.stats_spacing / 2, hi[0], p.stats_spacing)
+        gy = np.arange(lo[1] + p.stats_spacing / 2, hi[1], p.stats_spacing)
+        self.cells = np.stack(np.meshgrid(gx, gy, indexing="xy"), -1).reshape(-1, 2)
+        self.prior_diag = hm.prior_variances(basis, cfg.lengthscale_m, cfg.signal_variance)
+        self.cell_prior = hm.prior_variance_at(basis, self.prior_diag, self.cells)
+        self.observed = np.zeros(len(self.cells), dtype=bool)
+        self.rows: list[tuple[int, int, float, float, float, int, float]] = []
+        T = len(scans)
+        k = min(p.n_map_snapshots, T)
+        self.snapshot_at = set(np.unique(np.linspace(0, T - 1, k).round().astype(int)).tolist()) if k else set()
+        self.snapshots: list[tuple[int, int, F64, F64]] = []
+        self.image_axes = (np.arange(lo[0] + p.image_spacing / 2, hi[0], p.image_spacing),
+                           np.arange(lo[1] + p.image_spacing / 2, hi[1], p.image_spacing))
+
+    def observe(self, i: int, f: RBPF, best: int) -> None:
+        assert isinstance(f.maps, HilbertParticleMaps | ParallelHilbertMaps)
+        last = i == len(self.scans) - 1
+        if i % self.p.stats_every == 0 or last or i in self.snapshot_at:
+            theta, cov = f.maps.map_of(best)
+            self._observe_map(i, f.poses[best], theta, cov)
+        else:
+            self._observe_map(i, f.poses[best], None, None)
+
+    def _observe_map(self, i: int, pose: F64, theta: F64 | None, cov: F64 | None) -> None:
+        near = np.sum((self.cells - pose[:2]) ** 2, axis=1) <= self.p.max_range**2
+        self.observed |= near
+        last = i == len(self.scans) - 1
+        if theta is None or cov is None:
+            return
+        if i % self.p.stats_every == 0 or last:
+            idx = np.flatnonzero(self.observed)
+            _, var, _ = hm.query(self.basis, theta.astype(np.float64), cov.astype(np.float64), self.cells[idx])
+            u = var / np.maximum(self.cell_prior[idx], 1e-300)
+            q = np.quantile(u, [0.25, 0.5, 0.75]) if len(u) else np.full(3, np.nan)
+            self.rows.append((int(self.scans[i]), int(self.t_ns[i]), float(q[0]), float(q[1]), float(q[2]), len(idx),
+                              float(np.mean(u)) if len(u) else float("nan")))
+        if i in self.snapshot_at:
+            gx, gy = self.image_axes
+            g = np.stack(np.meshgrid(gx, gy, indexing="xy"), -1).reshape(-1, 2)
+            _, var, occ = hm.query(self.basis, theta.astype(np.float64), cov.astype(np.float64), g)
+            u = var / np.maximum(hm.prior_variance_at(self.basis, self.prior_diag, g), 1e-300)
+            self.snapshots.append((int(self.scans[i]), int(self.t_ns[i]), occ.reshape(len(gy), len(gx)),
+                                   u.reshape(len(gy), len(gx))))
+
+    def replay(self, poses: F64) -> tuple[F64, F64]:
+        """Statistics for a method without its own Hilbert maps: a map built along its poses (returned)."""
+        theta, cov = hm.prior(self.basis, self.cfg.lengthscale_m, self.cfg.signal_variance)
+        for i, (pose, s) in enumerate(zip(poses, self.samples, strict=True)):
+            if s.n:
+                phi = hm.features(self.basis, to_world(pose, s.points))
+                theta, cov = hm.kalman_update(theta, cov, phi, s.labels, self.cfg.noise_variance, inplace=True)
+            self._observe_map(i, pose, theta, cov)
+        return theta, cov
+
+    def write(self, path: Any) -> None:
+        cols: list[Any] = list(zip(*self.rows, strict=True)) if self.rows else [[] for _ in range(7)]
+        table = pa.table({
+            "scan": pa.array(cols[0], pa.int32()), "t_ns": pa.array(cols[1], pa.int64()),
+            "u_p25": pa.array(cols[2], pa.float64()), "u_p50": pa.array(cols[3], pa.float64()),
+            "u_p75": pa.array(cols[4], pa.float64()), "n_cells": pa.array(cols[5], pa.int32()),
+            "u_mean": pa.array(cols[6], pa.float64()),
+        }).replace_schema_metadata({"description": "normalised predictive variance u(p) / u_prior(p) (eq. 33) of "
+                                    "the best particle's map over the cells within max_range of its path so far"})
+        pq.write_table(table, path)
+
+
+# -- writing -------------------------------------------------------------------------------------------------
+
+
+def write_trajectory(path: Any, scans: npt.NDArray[np.int64], t_ns: npt.NDArray[np.int64], res: MethodResult) -> None:
+    write_artifact({"scan": scans.astype(np.int32), "t_ns": t_ns, "x": res.poses[:, 0], "y": res.poses[:, 1],
+                    "yaw": res.poses[:, 2], "n_eff": res.n_eff}, path, "trajectory", metadata={"method": res.method})
+
+
+def write_posterior(path: Any, basis: hm.HilbertBasis, theta: F64, cov: F64, p: SlamParams, last_scan: int) -> None:
+    M = basis.M
+    write_artifact({
+        "theta": pa.array([np.asarray(theta, np.float64).tolist()], pa.list_(pa.float64())),
+        "cov": pa.array([np.asarray(cov, np.float64).reshape(-1).tolist()], pa.list_(pa.float64())),
+        "L1": [float(basis.half_widths[0])], "L2": [float(basis.half_widths[1])],
+        "cx": [float(basis.centre[0])], "cy": [float(basis.centre[1])], "M": [M],
+        "lengthscale": [p.lengthscale], "signal_variance": [p.signal_variance], "noise_variance": [p.noise_variance],
+        "length_unit_m": [p.length_unit_m], "lengthscale_m": [p.lengthscale * p.length_unit_m],
+        "basis_kind": [basis.kind], "method": [p.method], "scan": [last_scan],
+    }, path, "map_posterior")
+
+
+def query_grid(basis: hm.HilbertBasis, theta: F64, cov: F64, spacing: float, cfg: SlamConfig) -> dict[str, F64]:
+    """The posterior on a regular grid over the domain (any spacing: the map is continuous)."""
+    lo, hi = basis.centre - basis.half_widths, basis.centre + basis.half_widths
+    gx = np.arange(lo[0] + spacing / 2, hi[0], spacing)
+    gy = np.arange(lo[1] + spacing / 2, hi[1], spacing)
+    g = np.stack(np.meshgrid(gx, gy, indexing="xy"), -1).reshape(-1, 2)
+    mean, var, occ = hm.query(basis, np.asarray(theta, np.float64), np.asarray(cov, np.float64), g)
+    u0 = hm.prior_variance_at(basis, hm.prior_variances(basis, cfg.lengthscale_m, cfg.signal_variance), g)
+    return {"x": g[:, 0], "y": g[:, 1], "occupancy": occ, "variance": var, "mean": mean, "prior_variance": u0}
+
+
+def _colormap(values: F64, name: str, vmin: float, vmax: float) -> npt.NDArray[np.uint8]:
+    from matplotlib import colormaps
+
+    v = np.clip((np.nan_to_num(values, nan=vmin) - vmin) / (vmax - vmin), 0.0, 1.0)
+    return (colormaps[name](v)[..., :3] * 255).astype(np.uint8)
+
+
+def log_recording(ctx: StageContext, scans: npt.NDArray[np.int64], t_ns: npt.NDArray[np.int64],
+                  results: dict[str, MethodResult], main: str, tracker: MapTracker) -> None:
+    import rerun as rr
+
+    rec = ctx.recording
+    colors = {"odometry": (70, 130, 255), "fastslam_grid": (60, 200, 90), "rich_slam": (230, 50, 50),
+              "rich_slam_no_et": (170, 80, 220), "rich_slam_mean_only": (240, 160, 40)}
+    for m, res in results.items():
+        xyz = np.column_stack([res.poses[:, :2], np.zeros(len(res.poses))])
+        entity = "world/slam/trajectory" if m == main else f"world/slam/methods/{m}"
+        rec.trajectory(entity, scans, t_ns, xyz, color=colors.get(m, (255, 255, 255)))
+    res = results[main]
+    if res.particles is not None and len(res.particles):
+        T, Np = res.particles.shape[:2]
+        pts = np.concatenate([res.particles[..., :2], np.zeros((T, Np, 1))], axis=-1).reshape(-1, 3)
+        rec.points_over_time("world/slam/particles", scans, t_ns, pts, np.full(T, Np), radii=0.03)
+        rec.scalars("metrics/slam/n_eff", scans, t_ns, res.n_eff)
+    for scan, t, occ, u in tracker.snapshots:
+        # image rows run from +y (top) down
+        rec.log("world/slam/map/occupancy", rr.Image(_colormap(occ[::-1], "viridis", 0.0, 1.0)), scan=scan, t_ns=t)
+        rec.log("world/slam/map/uncertainty", rr.Image(_colormap(u[::-1], "magma", 0.0, 1.0)), scan=scan, t_ns=t)
 
 
 STAGE = SlamStage()

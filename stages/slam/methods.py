@@ -1,0 +1,170 @@
+"""The stage's methods on numpy inputs: odometry pass-through, FastSLAM with grids, RICH-SLAM and ablations.
+
+Pure functions (no I/O): the stage reads artifacts, builds body-frame beam samples per scan and the
+odometry poses, and calls :func:`run_method`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from stages.slam import hilbert_map as hm
+from stages.slam.beam_sampling import BeamSamples, to_world
+from stages.slam.grid_map import GridModel, GridParticleMaps, make_grid_spec
+from stages.slam.parallel import ParallelHilbertMaps
+from stages.slam.rbpf import (
+    RBPF,
+    HilbertParticleMaps,
+    HilbertWeighting,
+    MotionNoise,
+    Resampling,
+    odometry_increments,
+)
+
+Method = Literal["odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only"]
+METHODS: tuple[Method, ...] = ("odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only")
+HILBERT_METHODS = ("rich_slam", "rich_slam_no_et", "rich_slam_mean_only")
+F64 = npt.NDArray[np.floating[Any]]
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    """Everything a method needs, in metres and radians."""
+
+    n_particles: int = 200
+    lengthscale_m: float = 2.0
+    signal_variance: float = 16.0
+    noise_variance: float = 0.36
+    n_basis: int = 256
+    basis_kind: hm.BasisKind = "tensor"
+    endpoint_tolerance: float = 0.25
+    et_ring_points: int = 8
+    et_rings: int = 1
+    et_variance: Literal["exact", "taylor"] = "exact"
+    likelihood_exponent: float = 1.0
+    noise: MotionNoise = field(default_factory=MotionNoise)
+    resampling: Resampling = "systematic"
+    resample_threshold: float = 0.5
+    map_update: Literal["kalman", "laplace"] = "kalman"
+    map_form: Literal["information", "covariance"] = "information"
+    laplace_iterations: int = 20
+    dtype: Literal["float64", "float32"] = "float64"
+    workers: int = 2
+    grid: GridModel = field(default_factory=GridModel)
+    grid_resolution: float = 0.1
+    estimate: Literal["best_per_scan", "final_best_history"] = "best_per_scan"
+
+    def weighting(self, method: str) -> HilbertWeighting:
+        return HilbertWeighting(
+            use_variance=method != "rich_slam_mean_only",
+            endpoint_tolerance=0.0 if method == "rich_slam_no_et" else self.endpoint_tolerance,
+            ring_points=self.et_ring_points,
+            rings=self.et_rings,
+            et_variance=self.et_variance,
+            exponent=self.likelihood_exponent,
+        )
+
+
+@dataclass
+class MethodResult:
+    """A method's trajectory (one pose per scan), filter diagnostics and, for Hilbert methods, the final maps."""
+
+    method: str
+    poses: F64  # (T, 3)
+    n_eff: F64  # (T,)
+    seconds: float
+    resampled: int = 0
+    particles: F64 | None = None  # (T, Np, 3)
+    theta: F64 | None = None  # best particle's final map
+    cov: F64 | None = None
+
+
+def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]:
+    """Hilbert domain (half widths, centre) from a trajectory envelope plus a fixed padding."""
+    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    lo, hi = p.min(axis=0) - padding, p.max(axis=0) + padding
+    return (hi - lo) / 2.0, (hi + lo) / 2.0
+
+
+def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_particles: int
+                      ) -> HilbertParticleMaps | ParallelHilbertMaps:
+    """The particle maps of a Hilbert method: worker processes for the information form when ``workers > 0``."""
+    if cfg.workers > 0 and cfg.map_form == "information":
+        return ParallelHilbertMaps(
+            basis, n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, cfg.weighting(method),
+            update=cfg.map_update, dtype=np.dtype(cfg.dtype), laplace_iterations=cfg.laplace_iterations,
+            workers=cfg.workers)
+    return HilbertParticleMaps(
+        basis, n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, cfg.weighting(method),
+        update=cfg.map_update, dtype=np.dtype(cfg.dtype), laplace_iterations=cfg.laplace_iterations,
+        form=cfg.map_form,
+    )
+
+
+Observer = Callable[[int, RBPF, int], None]
+
+
+def run_method(
+    method: str,
+    odometry: F64,
+    scans: Sequence[BeamSamples],
+    basis: hm.HilbertBasis,
+    cfg: SlamConfig,
+    seed: int,
+    observer: Observer | None = None,
+    on_step: Callable[[], None] | None = None,
+) -> MethodResult:
+    """Run one method over the scans; ``odometry (T, 3)`` are world <- base poses at the scan times."""
+    t0 = time.perf_counter()
+    odometry = np.asarray(odometry, dtype=np.float64).reshape(-1, 3)
+    if method == "odometry":
+        if on_step is not None:
+            for _ in range(len(odometry)):
+                on_step()
+        return MethodResult(method, odometry.copy(), np.ones(len(odometry)), time.perf_counter() - t0)
+    rng = np.random.default_rng(seed)
+    if method == "fastslam_grid":
+        spec = make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution)
+        maps: GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps = GridParticleMaps(
+            spec, cfg.n_particles, cfg.grid, cfg.likelihood_exponent)
+    elif method in HILBERT_METHODS:
+        maps = make_hilbert_maps(cfg, basis, method, cfg.n_particles)
+    else:
+        raise ValueError(f"unknown method {method!r}; one of {', '.join(METHODS)}")
+    best_map: dict[str, F64] = {}
+
+    def keep_best(i: int, f: RBPF, best: int) -> None:
+        if i == len(odometry) - 1 and isinstance(f.maps, HilbertParticleMaps | ParallelHilbertMaps):
+            best_map["theta"], best_map["cov"] = f.maps.map_of(best)
+        if observer is not None:
+            observer(i, f, best)
+
+    try:
+        f = RBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold)
+        h = f.run(odometry_increments(odometry), scans, observer=keep_best, on_step=on_step)
+    finally:
+        if isinstance(maps, ParallelHilbertMaps):
+            maps.close()
+    poses = h.final_best_history() if cfg.estimate == "final_best_history" else h.best_trajectory()
+    return MethodResult(
+        method, poses, np.asarray(h.n_eff), time.perf_counter() - t0, int(np.sum(h.resampled)),
+        np.asarray(h.particles), best_map.get("theta"), best_map.get("cov"),
+    )
+
+
+def map_along(
+    poses: F64, scans: Sequence[BeamSamples], basis: hm.HilbertBasis, cfg: SlamConfig
+) -> tuple[F64, F64]:
+    """One Hilbert map built along fixed poses (mapping with known poses; used for non-Hilbert methods)."""
+    theta, cov = hm.prior(basis, cfg.lengthscale_m, cfg.signal_variance)
+    for pose, s in zip(poses, scans, strict=True):
+        if s.n:
+            phi = hm.features(basis, to_world(pose, s.points))
+            theta, cov = hm.kalman_update(theta, cov, phi, s.labels, cfg.noise_variance, inplace=True)
+    return theta, cov

@@ -1,0 +1,202 @@
+"""Particle maps split across worker processes sharing memory (the machine's cores, one BLAS thread each).
+
+The per-particle BLAS-3 kernels of the information form (``particle_linalg``) are too small for a
+multi-threaded BLAS to scale (threads spin and synchronise per 256 x 256 call, catastrophically when
+the machine is shared), and scipy's BLAS wrappers hold the GIL, so Python threads do not help. Worker
+processes do: each owns a contiguous block of particles whose maps live in shared memory, runs the
+fused weight-and-update of a scan on it with a single-threaded BLAS, and returns the log-likelihoods.
+The parent resamples by permuting the shared arrays (a copy, so duplicates never alias).
+"""
+
+from __future__ import annotations
+
+import itertools
+import multiprocessing as mp
+import os
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from multiprocessing.shared_memory import SharedMemory
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from stages.slam import hilbert_map as hm
+from stages.slam.beam_sampling import BeamSamples
+from stages.slam.particle_linalg import StackedInformation
+from stages.slam.rbpf import HilbertParticleMaps, HilbertWeighting
+
+F64 = npt.NDArray[np.floating[Any]]
+_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@dataclass(frozen=True)
+class _Spec:
+    names: tuple[str, str, str]  # shared blocks: theta, info, chol
+    n_particles: int
+    M: int
+    dtype: str
+    lo: int
+    hi: int
+    basis: hm.HilbertBasis
+    lengthscale: float
+    signal_variance: float
+    noise_variance: float
+    weighting: HilbertWeighting
+    update: str
+    laplace_iterations: int
+
+
+def _attach(name: str, shape: tuple[int, ...], dtype: str) -> tuple[SharedMemory, npt.NDArray[Any]]:
+    shm = SharedMemory(name=name)
+    return shm, np.ndarray(shape, dtype=np.dtype(dtype), buffer=shm.buf)
+
+
+def _worker_main(conn: Connection, spec: _Spec) -> None:
+    """Serve ``("step", poses, points, labels)`` requests on particles ``[lo, hi)`` until ``None``."""
+    Np, M = spec.n_particles, spec.M
+    blocks = [_attach(spec.names[0], (Np, M), spec.dtype), _attach(spec.names[1], (Np, M, M), spec.dtype),
+              _attach(spec.names[2], (Np, M, M), spec.dtype)]
+    theta, info, chol = (b[1][spec.lo : spec.hi] for b in blocks)
+    maps = HilbertParticleMaps(
+        spec.basis, spec.hi - spec.lo, spec.lengthscale, spec.signal_variance, spec.noise_variance, spec.weighting,
+        update=spec.update,  # type: ignore[arg-type]
+        dtype=spec.dtype, laplace_iterations=spec.laplace_iterations, form="information", arrays=(theta, info, chol),
+    )
+    try:
+        while True:
+            msg = conn.recv()
+            if msg is None:
+                break
+            _, poses, points, labels, beam, origin = msg
+            samples = BeamSamples(points, labels, beam, points[labels > 0], origin)
+            try:
+                ll = maps.log_likelihood(poses, samples)
+                maps.update(poses, samples)
+                conn.send(("ok", ll))
+            except Exception as exc:  # report, keep serving
+                conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        del theta, info, chol, maps
+        for shm, _ in blocks:
+            shm.close()
+
+
+class ParallelHilbertMaps:
+    """``ParticleMaps`` in the information form, computed by ``workers`` processes on shared memory.
+
+    ``log_likelihood`` runs the scan's weight and its map update in one round trip (RBPF always
+    updates right after weighting, on the same poses); ``update`` is then a no-op.
+    """
+
+    def __init__(
+        self,
+        basis: hm.HilbertBasis,
+        n_particles: int,
+        lengthscale: float,
+        signal_variance: float,
+        noise_variance: float,
+        weighting: HilbertWeighting,
+        update: Literal["kalman", "laplace"] = "kalman",
+        dtype: npt.DTypeLike = np.float64,
+        laplace_iterations: int = 20,
+        workers: int = 2,
+    ) -> None:
+        self.basis = basis
+        self.dtype = np.dtype(dtype)
+        M = basis.M
+        _, info0, _ = hm.prior_information(basis, lengthscale, signal_variance)
+        self._shm: list[SharedMemory] = []
+        self.theta = self._shared((n_particles, M))
+        self.theta[...] = 0
+        init = StackedInformation(np.diag(info0), 1, self.dtype)
+        self.info = self._shared((n_particles, M, M))
+        self.chol = self._shared((n_particles, M, M))
+        self.info[...] = init.info[0]
+        self.chol[...] = init.chol[0]
+        # kernels for the parent's queries of single maps
+        self.stack = StackedInformation(np.diag(info0), n_particles, self.dtype, arrays=(self.info, self.chol))
+        workers = max(1, min(workers, n_particles))
+        bounds = np.linspace(0, n_particles, workers + 1).round().astype(int)
+        ctx = mp.get_context("spawn")
+        self._conns: list[Connection] = []
+        self._procs: list[Any] = []
+        saved = {v: os.environ.get(v) for v in _THREAD_VARS}
+        try:
+            for v in _THREAD_VARS:
+                os.environ[v] = "1"
+            for lo, hi in itertools.pairwise(bounds):
+                spec = _Spec((self._shm[0].name, self._shm[1].name, self._shm[2].name), n_particles, M,
+                             self.dtype.name, int(lo), int(hi), basis, lengthscale, signal_variance, noise_variance,
+                             weighting, update, laplace_iterations)
+                parent, child = ctx.Pipe()
+                proc = ctx.Process(target=_worker_main, args=(child, spec), daemon=True)
+                proc.start()
+                child.close()
+                self._conns.append(parent)
+                self._procs.append(proc)
+        except BaseException:
+            self.close()
+            raise
+        finally:
+            for v, old in saved.items():
+                if old is None:
+                    os.environ.pop(v, None)
+                else:
+                    os.environ[v] = old
+        self._bounds = bounds
+
+    def _shared(self, shape: tuple[int, ...]) -> npt.NDArray[Any]:
+        size = int(np.prod(shape)) * self.dtype.itemsize
+        shm = SharedMemory(create=True, size=max(size, 1))
+        self._shm.append(shm)
+        return np.ndarray(shape, dtype=self.dtype, buffer=shm.buf)
+
+    def log_likelihood(self, poses: F64, samples: BeamSamples) -> F64:
+        if samples.n == 0:
+            return np.zeros(len(poses))
+        for c, lo, hi in zip(self._conns, self._bounds[:-1], self._bounds[1:], strict=True):
+            c.send(("step", poses[lo:hi], samples.points, samples.labels, samples.beam, samples.origin))
+        out = []
+        for c in self._conns:
+            status, value = c.recv()
+            if status != "ok":
+                raise RuntimeError(f"slam worker failed: {value}")
+            out.append(value)
+        return np.concatenate(out)
+
+    def update(self, poses: F64, samples: BeamSamples) -> None:
+        """Done by the workers together with the weights."""
+
+    def select(self, indices: npt.NDArray[np.int64]) -> None:
+        """Permute the shared maps (``a[idx]`` is a copy, then written back)."""
+        for a in (self.theta, self.info, self.chol):
+            a[...] = a[indices]
+
+    def map_of(self, k: int) -> tuple[F64, F64]:
+        return self.theta[k].astype(np.float64), hm.covariance_from_information(self.stack.lower_factor(k))
+
+    def close(self) -> None:
+        for c in getattr(self, "_conns", []):
+            try:
+                c.send(None)
+            except (BrokenPipeError, OSError):
+                pass
+        for p in getattr(self, "_procs", []):
+            p.join(timeout=10)
+            if p.is_alive():
+                p.terminate()
+        self._conns, self._procs = [], []
+        # drop our views before releasing the blocks
+        self.theta = self.info = self.chol = np.zeros(0)
+        self.stack.info = self.stack.chol = np.zeros((0, 0, 0))
+        for shm in self._shm:
+            shm.close()
+            shm.unlink()
+        self._shm = []
+
+    def __enter__(self) -> ParallelHilbertMaps:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

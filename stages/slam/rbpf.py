@@ -1,0 +1,566 @@
+"""Rao-Blackwellised particle filter of RICH-SLAM (Sec. IV-D, Algorithm 1), batched across particles.
+
+Pure numpy. Poses are ``(Np, 3)`` arrays (x, y, yaw). A particle-map model implements
+:class:`ParticleMaps`: per-particle log-likelihoods of a scan against the maps *before* the update
+(eq. 22), then the map update (eq. 15), then selection of survivors after resampling. The Hilbert-GP
+model (:class:`HilbertParticleMaps`) keeps every particle's weight posterior in one stack
+``theta (Np, M)``, ``cov (Np, M, M)`` so that weights and Kalman updates are batched matrix products.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from stages.slam import hilbert_map as hm
+from stages.slam.beam_sampling import BeamSamples, stencil_offsets, to_world
+from stages.slam.particle_linalg import StackedInformation
+
+Resampling = Literal["systematic", "stratified", "multinomial"]
+F64 = npt.NDArray[np.floating[Any]]
+
+
+# -- SE(2) helpers ---------------------------------------------------------------------------------------
+
+
+def wrap_angle(a: npt.ArrayLike) -> F64:
+    """Angles to (-pi, pi]."""
+    a = np.asarray(a, dtype=np.float64)
+    return -((-a + np.pi) % (2 * np.pi) - np.pi)
+
+
+def compose(poses: npt.ArrayLike, delta: npt.ArrayLike) -> F64:
+    """``x (+) u``: apply body-frame increments ``delta (..., 3)`` to poses ``(..., 3)``."""
+    x = np.asarray(poses, dtype=np.float64)
+    d = np.asarray(delta, dtype=np.float64)
+    c, s = np.cos(x[..., 2]), np.sin(x[..., 2])
+    return np.stack(
+        [x[..., 0] + c * d[..., 0] - s * d[..., 1], x[..., 1] + s * d[..., 0] + c * d[..., 1],
+         wrap_angle(x[..., 2] + d[..., 2])],
+        axis=-1,
+    )
+
+
+def odometry_increments(poses: npt.ArrayLike) -> F64:
+    """Body-frame increments ``u[i] = x[i-1]^-1 (+) x[i]`` of an odometry trajectory ``(T, 3)``.
+
+    Row 0 is zero (the filter starts at the first odometry pose).
+    """
+    x = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    u = np.zeros_like(x)
+    if len(x) > 1:
+        dp = x[1:, :2] - x[:-1, :2]
+        c, s = np.cos(x[:-1, 2]), np.sin(x[:-1, 2])
+        u[1:, 0] = c * dp[:, 0] + s * dp[:, 1]
+        u[1:, 1] = -s * dp[:, 0] + c * dp[:, 1]
+        u[1:, 2] = wrap_angle(x[1:, 2] - x[:-1, 2])
+    return u
+
+
+@dataclass(frozen=True)
+class MotionNoise:
+    """Process noise ``v`` of eq. 21, added to the body-frame odometry increment.
+
+    Standard deviations per step: ``std_xy + rel_trans * |translation|`` on x and y,
+    ``std_yaw + rel_rot * |rotation|`` on yaw.
+    """
+
+    std_xy: float = 0.02
+    std_yaw: float = 0.005
+    rel_trans: float = 0.0
+    rel_rot: float = 0.0
+
+
+def propagate(poses: F64, u: npt.ArrayLike, noise: MotionNoise, rng: np.random.Generator) -> F64:
+    """Draw ``x_k[i] ~ f(x_k[i-1], u[i], v_k[i])`` for every particle (eq. 21; the proposal q)."""
+    u = np.asarray(u, dtype=np.float64).reshape(3)
+    n = len(poses)
+    trans = float(np.hypot(u[0], u[1]))
+    s_xy = noise.std_xy + noise.rel_trans * trans
+    s_yaw = noise.std_yaw + noise.rel_rot * abs(float(u[2]))
+    v = rng.standard_normal((n, 3)) * np.array([s_xy, s_xy, s_yaw])
+    return compose(poses, u + v)
+
+
+# -- weights and resampling ------------------------------------------------------------------------------
+
+
+def normalize_log_weights(logw: npt.ArrayLike) -> F64:
+    """Normalised weights from log weights (max-shifted)."""
+    lw = np.asarray(logw, dtype=np.float64)
+    w = np.exp(lw - np.max(lw))
+    return w / w.sum()
+
+
+def effective_sample_size(weights: npt.ArrayLike) -> float:
+    """``N_eff = (sum w)^2 / sum w^2`` (eq. 31)."""
+    w = np.asarray(weights, dtype=np.float64)
+    return float(w.sum() ** 2 / np.sum(w**2))
+
+
+def _search(w: F64, positions: F64) -> npt.NDArray[np.int64]:
+    c = np.cumsum(w)
+    c /= c[-1]
+    c[-1] = 1.0
+    return np.minimum(np.searchsorted(c, positions, side="right"), len(w) - 1).astype(np.int64)
+
+
+def systematic_resample(w: npt.ArrayLike, rng: np.random.Generator) -> npt.NDArray[np.int64]:
+    """Low-variance (systematic) resampling: one uniform offset, N evenly spaced pointers."""
+    w = np.asarray(w, dtype=np.float64)
+    n = len(w)
+    return _search(w, (rng.random() + np.arange(n)) / n)
+
+
+def stratified_resample(w: npt.ArrayLike, rng: np.random.Generator) -> npt.NDArray[np.int64]:
+    """Stratified resampling: one uniform draw per stratum."""
+    w = np.asarray(w, dtype=np.float64)
+    n = len(w)
+    return _search(w, (rng.random(n) + np.arange(n)) / n)
+
+
+def multinomial_resample(w: npt.ArrayLike, rng: np.random.Generator) -> npt.NDArray[np.int64]:
+    """Multinomial resampling (i.i.d. draws)."""
+    w = np.asarray(w, dtype=np.float64)
+    return _search(w, np.sort(rng.random(len(w))))
+
+
+RESAMPLERS: dict[str, Callable[[npt.ArrayLike, np.random.Generator], npt.NDArray[np.int64]]] = {
+    "systematic": systematic_resample,
+    "stratified": stratified_resample,
+    "multinomial": multinomial_resample,
+}
+
+
+# -- the Hilbert-GP particle likelihood (eq. 22-30) -----------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HilbertWeighting:
+    """How a particle scores a scan against its map posterior."""
+
+    #: use the map variance (eq. 28); False gives the mean-only weighting of H-SLAM
+    use_variance: bool = True
+    #: endpoint tolerance radius r_e [m] (eq. 29); 0 disables it
+    endpoint_tolerance: float = 0.25
+    #: points per ring of the discretised tolerance disc (Fig. 3b); the centre is always included
+    ring_points: int = 8
+    rings: int = 1
+    #: variance at the tolerance points: "exact" Phi(q)^T cov Phi(q); "taylor" with Phi(q) ~ Phi(p) + J (q - p)
+    #: (the mean is always exact)
+    et_variance: Literal["exact", "taylor"] = "exact"
+    #: exponent on the scan likelihood (1 = the paper)
+    exponent: float = 1.0
+
+
+class CovarianceMetric:
+    """Quadratic forms ``u^T cov v`` with the covariance stored: ``transform(V) = V cov``."""
+
+    def __init__(self, cov: F64) -> None:
+        self.cov = cov
+
+    def transform(self, V: F64) -> F64:
+        return np.matmul(V, self.cov)
+
+    @staticmethod
+    def inner(Ta: F64, Va: F64, Tb: F64, Vb: F64) -> F64:
+        return np.einsum("...m,...m->...", Ta, Vb)
+
+
+class InformationMetric:
+    """Quadratic forms with the information factor stored (``Y = L L^T``): ``transform(V)`` has rows ``L^-1 v``.
+
+    Built from a numpy stack of lower factors or from a :class:`StackedInformation`.
+    """
+
+    def __init__(self, chol: F64 | StackedInformation) -> None:
+        self.chol = chol
+
+    def transform(self, V: F64) -> F64:
+        if isinstance(self.chol, StackedInformation):
+            return self.chol.whiten(V)
+        return hm.whiten(self.chol, V)
+
+    @staticmethod
+    def inner(Ta: F64, Va: F64, Tb: F64, Vb: F64) -> F64:
+        return np.einsum("...m,...m->...", Ta, Tb)
+
+
+Metric = CovarianceMetric | InformationMetric
+
+
+def log_occupancy_terms(mean: F64, var: F64 | None) -> tuple[F64, F64]:
+    """``log o`` and ``log (1 - o)`` with ``o`` of eq. 28 (mean-only when ``var`` is None)."""
+    x = mean if var is None else mean * hm.probit_scale(var)
+    return hm.log_sigmoid(x), hm.log_sigmoid(-x)
+
+
+def endpoint_jacobians(basis: hm.HilbertBasis, poses: F64, samples: BeamSamples, dtype: npt.DTypeLike) -> F64:
+    """``d Phi / d p`` at every endpoint, as rows ``(Np, B, 2, M)`` (x then y derivative)."""
+    ends_w = to_world(poses, samples.points[samples.labels > 0])
+    return np.swapaxes(hm.feature_gradients(basis, ends_w, dtype=dtype), -1, -2)
+
+
+def hilbert_log_likelihood(
+    basis: hm.HilbertBasis,
+    theta: F64,
+    cov: F64 | Metric,
+    poses: F64,
+    samples: BeamSamples,
+    weighting: HilbertWeighting,
+    phi: F64 | None = None,
+    phi_t: F64 | None = None,
+    jac: F64 | None = None,
+    jac_t: F64 | None = None,
+) -> F64:
+    """Per-particle ``log Pr(z~[i] | x_k[i], D_k[i-1])`` (eq. 23-30), batched over particles.
+
+    ``cov`` is the stack of covariances ``(Np, M, M)`` or a metric of the information form.
+    ``phi`` ``(Np, N, M)``, ``phi_t`` (its metric transform) and, for the Taylor tolerance, the endpoint
+    Jacobians ``jac (Np, B, 2, M)`` and their transform may be passed in when already computed.
+    """
+    metric: Metric = CovarianceMetric(cov) if isinstance(cov, np.ndarray) else cov
+    if samples.n == 0:
+        return np.zeros(len(poses))
+    if phi is None:
+        phi = hm.features(basis, to_world(poses, samples.points), dtype=theta.dtype)
+    mean = np.einsum("knm,km->kn", phi, theta)
+    var = None
+    if weighting.use_variance:
+        if phi_t is None:
+            phi_t = metric.transform(phi)
+        var = np.maximum(metric.inner(phi_t, phi, phi_t, phi), 0.0)
+    log_o, log_free = log_occupancy_terms(mean, var)
+    pos = samples.labels > 0
+    total = np.sum(log_free[:, ~pos], axis=1)
+    if weighting.endpoint_tolerance > 0 and np.any(pos):
+        et = _endpoint_tolerant_log_o(basis, theta, metric, poses, samples, weighting, phi, phi_t, mean, var,
+                                      jac, jac_t)
+        total = total + np.sum(et, axis=1)
+    else:
+        total = total + np.sum(log_o[:, pos], axis=1)
+    return weighting.exponent * total
+
+
+def _endpoint_tolerant_log_o(
+    basis: hm.HilbertBasis,
+    theta: F64,
+    metric: Metric,
+    poses: F64,
+    samples: BeamSamples,
+    weighting: HilbertWeighting,
+    phi: F64,
+    phi_t: F64 | None,
+    mean: F64,
+    var: F64 | None,
+    jac: F64 | None,
+    jac_t: F64 | None,
+) -> F64:
+    """``log max_{|q - p| <= r_e} o_k(q)`` at every endpoint (eq. 29), shape ``(Np, B)``.
+
+    The disc is discretised as its centre plus rings (:func:`stencil_offsets`); the centre term is the
+    endpoint's own sample. Means at the ring points are exact; variances exact or Taylor.
+    """
+    dtype = theta.dtype
+    pos = np.flatnonzero(samples.labels > 0)
+    ends_w = to_world(poses, samples.points[pos])  # (Np, B, 2)
+    offs = stencil_offsets(weighting.endpoint_tolerance, weighting.ring_points, weighting.rings)[1:]  # (K, 2)
+    q = ends_w[:, :, None, :] + offs  # (Np, B, K, 2)
+    Np, B, K = q.shape[:3]
+    mean_q = hm.mean_at(basis, theta, q.reshape(Np, B * K, 2)).reshape(Np, B, K)
+    var_q: F64 | None = None
+    var_c = None if var is None else var[:, pos]
+    if var_c is not None:
+        assert phi_t is not None
+        if weighting.et_variance == "exact":
+            phi_q = hm.features(basis, q.reshape(Np, B * K, 2), dtype=dtype)
+            t_q = metric.transform(phi_q)
+            var_q = np.maximum(metric.inner(t_q, phi_q, t_q, phi_q), 0.0).reshape(Np, B, K)
+        else:
+            # Phi(p + d) ~ Phi(p) + J d: var ~ v + 2 g.d + d^T G d (a Gauss-Newton quadratic, >= 0)
+            if jac is None:
+                jac = endpoint_jacobians(basis, poses, samples, dtype)
+            if jac_t is None:
+                jac_t = metric.transform(jac.reshape(Np, B * 2, -1)).reshape(jac.shape)
+            pc, tc = phi[:, pos], phi_t[:, pos]
+            g = metric.inner(tc[:, :, None, :], pc[:, :, None, :], jac_t, jac)  # (Np, B, 2)
+            G = metric.inner(jac_t[:, :, :, None, :], jac[:, :, :, None, :], jac_t[:, :, None, :, :],
+                             jac[:, :, None, :, :])
+            var_q = (var_c[:, :, None] + 2.0 * np.einsum("kbd,qd->kbq", g, offs)
+                     + np.einsum("qd,kbde,qe->kbq", offs, G, offs))
+            var_q = np.maximum(var_q, 0.0)
+    log_q, _ = log_occupancy_terms(mean_q, var_q)
+    log_c, _ = log_occupancy_terms(mean[:, pos], var_c)
+    return np.maximum(np.max(log_q, axis=2), log_c)
+
+
+# -- particle-map models ---------------------------------------------------------------------------------------
+
+
+class ParticleMaps(Protocol):
+    """Per-particle maps driven by the filter."""
+
+    def log_likelihood(self, poses: F64, samples: BeamSamples) -> F64: ...
+
+    def update(self, poses: F64, samples: BeamSamples) -> None: ...
+
+    def select(self, indices: npt.NDArray[np.int64]) -> None: ...
+
+
+class HilbertParticleMaps:
+    """Every particle's Hilbert-GP weight posterior (eq. 20), stacked for batched products.
+
+    ``form = "information"`` stores ``Y = cov^-1`` and its Cholesky factor (the default: positive
+    definite by construction, cheaper for scans with many samples); ``"covariance"`` stores ``cov``
+    and applies eq. 15-19 literally. ``log_likelihood`` caches the scan's features and their metric
+    transform so the following ``update`` (same poses, same samples) reuses them.
+    """
+
+    def __init__(
+        self,
+        basis: hm.HilbertBasis,
+        n_particles: int,
+        lengthscale: float,
+        signal_variance: float,
+        noise_variance: float,
+        weighting: HilbertWeighting,
+        update: Literal["kalman", "laplace"] = "kalman",
+        dtype: npt.DTypeLike = np.float64,
+        laplace_iterations: int = 20,
+        form: Literal["information", "covariance"] = "information",
+        arrays: tuple[F64, F64, F64] | None = None,
+    ) -> None:
+        """``arrays``: existing ``(theta, info, chol)`` stacks to work on in place (information form)."""
+        self.basis = basis
+        self.noise_variance = noise_variance
+        self.weighting = weighting
+        self.update_kind = update
+        self.laplace_iterations = laplace_iterations
+        self.dtype = np.dtype(dtype)
+        self.form = form
+        self.prior_diag = hm.prior_variances(basis, lengthscale, signal_variance)
+        self.cov: F64 | None = None
+        self.stack: StackedInformation | None = None
+        if form == "information":
+            _, info, _ = hm.prior_information(basis, lengthscale, signal_variance)
+            if arrays is not None:
+                self.theta = arrays[0]
+                self.stack = StackedInformation(np.diag(info), n_particles, self.dtype, arrays=arrays[1:])
+            else:
+                self.stack = StackedInformation(np.diag(info), n_particles, self.dtype)
+                self.theta = np.zeros((n_particles, basis.M), dtype=self.dtype)
+        else:
+            self.theta, self.cov = hm.prior(basis, lengthscale, signal_variance, (n_particles,), self.dtype)
+        self._cache: tuple[F64, BeamSamples, F64, F64, F64 | None, F64 | None] | None = None
+
+    @property
+    def metric(self) -> Metric:
+        if self.stack is not None:
+            return InformationMetric(self.stack)
+        assert self.cov is not None
+        return CovarianceMetric(self.cov)
+
+    def map_of(self, k: int) -> tuple[F64, F64]:
+        """Mean and covariance of particle k's map (float64)."""
+        if self.stack is not None:
+            return self.theta[k].astype(np.float64), hm.covariance_from_information(self.stack.lower_factor(k))
+        assert self.cov is not None
+        return self.theta[k].astype(np.float64), self.cov[k].astype(np.float64)
+
+    def _products(self, poses: F64, samples: BeamSamples) -> tuple[F64, F64, F64 | None, F64 | None]:
+        """Features of the scan (and the endpoint Jacobians for the Taylor tolerance), metric-transformed
+        in one call per particle."""
+        c = self._cache
+        if c is not None and c[0] is poses and c[1] is samples:
+            return c[2], c[3], c[4], c[5]
+        phi = hm.features(self.basis, to_world(poses, samples.points), dtype=self.dtype)
+        w = self.weighting
+        jac = jac_t = None
+        if w.use_variance and w.endpoint_tolerance > 0 and w.et_variance == "taylor" and np.any(samples.labels > 0):
+            jac = endpoint_jacobians(self.basis, poses, samples, self.dtype)
+            Np, B = jac.shape[:2]
+            both = self.metric.transform(np.concatenate([phi, jac.reshape(Np, 2 * B, -1)], axis=1))
+            phi_t, jac_t = both[:, : phi.shape[1]], both[:, phi.shape[1] :].reshape(jac.shape)
+        else:
+            phi_t = self.metric.transform(phi)
+        self._cache = (poses, samples, phi, phi_t, jac, jac_t)
+        return phi, phi_t, jac, jac_t
+
+    def log_likelihood(self, poses: F64, samples: BeamSamples) -> F64:
+        if samples.n == 0:
+            return np.zeros(len(poses))
+        phi, phi_t, jac, jac_t = self._products(poses, samples)
+        return hilbert_log_likelihood(self.basis, self.theta, self.metric, poses, samples, self.weighting,
+                                      phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t)
+
+    def update(self, poses: F64, samples: BeamSamples) -> None:
+        if samples.n == 0:
+            return
+        phi, phi_t, _, _ = self._products(poses, samples)
+        labels = samples.labels.astype(self.dtype)
+        if self.stack is not None:
+            self._update_information(self.stack, phi, phi_t, labels)
+        else:
+            assert self.cov is not None
+            if self.update_kind == "kalman":
+                self.theta, self.cov = hm.kalman_update(
+                    self.theta, self.cov, phi, labels, self.noise_variance, phi_cov=phi_t, inplace=True)
+            else:
+                self.theta, self.cov = hm.laplace_update(
+                    self.theta, self.cov, phi, labels, phi_cov=phi_t, max_iter=self.laplace_iterations)
+        self._cache = None
+
+    def _update_information(self, st: StackedInformation, phi: F64, phi_t: F64, labels: F64) -> None:
+        if self.update_kind == "kalman":
+            # eq. 15-19 in information form: Y += H H^T / s2; theta += Y^-1 H (z - H^T theta) / s2
+            st.add_gram(phi, 1.0 / self.noise_variance)
+            st.factorize()
+            innov = labels - np.einsum("knm,km->kn", phi, self.theta)
+            self.theta += st.solve(np.einsum("knm,kn->km", phi, innov) / self.noise_variance)
+        else:
+            # Appendix: mode on the latent values with K = X X^T (X = L^-1 H), then Y += H W H^T
+            K = np.matmul(phi_t, np.swapaxes(phi_t, -1, -2)).astype(np.float64)
+            m = np.einsum("knm,km->kn", phi, self.theta)
+            f, w = hm.laplace_mode(K, m, labels, self.laplace_iterations)
+            a = (labels + 1.0) / 2.0 - hm.sigmoid(f)
+            self.theta += st.solve(np.einsum("knm,kn->km", phi, a.astype(self.dtype)))  # cov_old H a
+            st.add_gram(phi, w.astype(self.dtype))
+            st.factorize()
+
+    def select(self, indices: npt.NDArray[np.int64]) -> None:
+        """Survivors after resampling; fancy indexing copies, so duplicates never share memory."""
+        self.theta = self.theta[indices]
+        if self.stack is not None:
+            self.stack.select(indices)
+        else:
+            assert self.cov is not None
+            self.cov = self.cov[indices]
+        self._cache = None
+
+
+# -- the filter ------------------------------------------------------------------------------------------
+
+
+@dataclass
+class StepResult:
+    best: int
+    pose: F64
+    n_eff: float
+    resampled: bool
+
+
+@dataclass
+class FilterHistory:
+    """Everything recorded per scan."""
+
+    best_pose: list[F64] = field(default_factory=list)
+    best_index: list[int] = field(default_factory=list)
+    n_eff: list[float] = field(default_factory=list)
+    resampled: list[bool] = field(default_factory=list)
+    particles: list[F64] = field(default_factory=list)
+    parents: list[npt.NDArray[np.int64]] = field(default_factory=list)
+
+    def best_trajectory(self) -> F64:
+        """Algorithm 1 line 9: the largest-weight particle's pose at every step."""
+        return np.asarray(self.best_pose).reshape(-1, 3)
+
+    def final_best_history(self) -> F64:
+        """The trajectory history ``x_k*[1:T]`` of the final best particle (ancestry traced back)."""
+        T = len(self.particles)
+        out = np.zeros((T, 3))
+        if T == 0:
+            return out
+        k = self.best_index[-1]
+        for i in range(T - 1, -1, -1):
+            out[i] = self.particles[i][k]
+            k = int(self.parents[i][k])
+        return out
+
+
+class RBPF:
+    """Algorithm 1: propagate, weight against the prior maps, update maps, select, resample."""
+
+    def __init__(
+        self,
+        maps: ParticleMaps,
+        initial_pose: npt.ArrayLike,
+        n_particles: int,
+        noise: MotionNoise,
+        rng: np.random.Generator,
+        resampling: Resampling = "systematic",
+        resample_threshold: float = 0.5,
+    ) -> None:
+        self.maps = maps
+        self.poses: F64 = np.tile(np.asarray(initial_pose, dtype=np.float64).reshape(1, 3), (n_particles, 1))
+        self.logw: F64 = np.full(n_particles, -np.log(n_particles))
+        self.noise = noise
+        self.rng = rng
+        self.resampler = RESAMPLERS[resampling]
+        self.resample_threshold = resample_threshold
+        self.history = FilterHistory()
+        self._parents = np.arange(n_particles)
+
+    @property
+    def n_particles(self) -> int:
+        return len(self.poses)
+
+    def weights(self) -> F64:
+        return normalize_log_weights(self.logw)
+
+    def step(
+        self,
+        u: npt.ArrayLike,
+        samples: BeamSamples,
+        first: bool = False,
+        observer: Callable[[RBPF, int], None] | None = None,
+    ) -> StepResult:
+        """One iteration of Algorithm 1; ``observer(self, best)`` sees the maps before resampling."""
+        if not first:
+            self.poses = propagate(self.poses, u, self.noise, self.rng)
+        self.logw = self.logw + self.maps.log_likelihood(self.poses, samples)  # eq. 22, prior maps
+        self.maps.update(self.poses, samples)  # eq. 15 (after weighting)
+        w = self.weights()
+        self.logw = np.log(np.maximum(w, np.finfo(np.float64).tiny))  # keep them normalised
+        best = int(np.argmax(w))
+        n_eff = effective_sample_size(w)
+        pose = self.poses[best].copy()
+        self.history.best_pose.append(pose)
+        self.history.best_index.append(best)
+        self.history.n_eff.append(n_eff)
+        self.history.particles.append(self.poses.copy())
+        self.history.parents.append(self._parents)
+        if observer is not None:
+            observer(self, best)
+        resampled = n_eff < self.resample_threshold * self.n_particles
+        self._parents = np.arange(self.n_particles)
+        if resampled:
+            idx = self.resampler(w, self.rng)
+            self.poses = self.poses[idx]
+            self.maps.select(idx)
+            self.logw = np.full(self.n_particles, -np.log(self.n_particles))
+            self._parents = idx  # particle k of the next step continues particle idx[k] of this step
+        self.history.resampled.append(resampled)
+        return StepResult(best, pose, n_eff, resampled)
+
+    def run(
+        self,
+        increments: npt.ArrayLike,
+        scans: Sequence[BeamSamples],
+        observer: Callable[[int, RBPF, int], None] | None = None,
+        on_step: Callable[[], None] | None = None,
+    ) -> FilterHistory:
+        """Run over all scans; ``increments[i]`` is the odometry increment into scan i (row 0 unused).
+
+        ``observer(i, filter, best)`` runs at every step before resampling; ``on_step()`` after it.
+        """
+        u = np.asarray(increments, dtype=np.float64).reshape(-1, 3)
+        for i, samples in enumerate(scans):
+            obs = None if observer is None else (lambda f, best, i=i: observer(i, f, best))
+            self.step(u[i], samples, first=(i == 0), observer=obs)
+            if on_step is not None:
+                on_step()
+        return self.history
