@@ -290,7 +290,10 @@ def report(
     for m in missing:
         console.print(f"[yellow]note[/] {m}: no evaluation in {runs}; run `pipeline run evaluate --seq {m}`")
     if out_file is not None:
-        for p in rep.write_outputs(records, out_file, title):
+        written = rep.write_outputs(records, out_file, title)
+        if sweep is None:
+            written += rep.write_figures(runs, records, out_file)
+        for p in written:
             out.print(str(p))
 
 

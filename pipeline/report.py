@@ -145,6 +145,44 @@ def write_outputs(records: Sequence[dict[str, Any]], out: Path, title: str) -> l
     return [out, pq_path]
 
 
+def uncertainty_curves(runs_dir: Path, seqs: Sequence[str]) -> dict[str, Any]:
+    """Per sequence, rows (t_s, p25, p50, p75) of the slam stage's ``map_stats.parquet`` (Fig. 10, right)."""
+    import numpy as np
+    import pyarrow.parquet as pq
+
+    out: dict[str, Any] = {}
+    for seq in seqs:
+        path = RunStore(Path(runs_dir), seq).stage_dir("slam") / "map_stats.parquet"
+        if not path.exists():
+            continue
+        t = pq.read_table(path)
+        if t.num_rows == 0 or not {"t_ns", "u_p25", "u_p50", "u_p75"} <= set(t.column_names):
+            continue
+        tn = t["t_ns"].to_numpy()
+        out[seq] = np.column_stack([(tn - tn[0]) / 1e9, *[t[c].to_numpy() for c in ("u_p25", "u_p50", "u_p75")]])
+    return out
+
+
+def write_figures(runs_dir: Path, records: Sequence[dict[str, Any]], out: Path) -> list[Path]:
+    """Figures across sequences beside ``out``: Fig. 6 (AUC per feature count, one panel per sequence) and
+    Fig. 10 right (the slam map's median and 25-75 % uncertainty over time, one curve per sequence)."""
+    from pipeline.sweep import plot_auc_vs_features
+    from stages.evaluate import figures
+
+    seqs = list(dict.fromkeys(str(r["seq"]) for r in records))
+    written = []
+    with_auc = [s for s in seqs if any(r["seq"] == s and r["metric"] == "auc" and "@" in str(r["method"])
+                                       for r in records)]
+    if with_auc:
+        written.append(plot_auc_vs_features(out.with_name(out.stem + "_auc.png"), records, with_auc,
+                                            "occupancy AUC vs number of map features (ground-truth poses)"))
+    curves = uncertainty_curves(runs_dir, seqs)
+    if curves:
+        written.append(figures.plot_uncertainty(out.with_name(out.stem + "_uncertainty.png"), curves,
+                                                "RICH-SLAM map: normalised predictive uncertainty (median, 25-75 %)"))
+    return written
+
+
 def report_sequences(runs_dir: Path, spec: str) -> tuple[list[dict[str, Any]], list[str]]:
     """Resolve ``--seqs`` and gather; a clear error when nothing was evaluated."""
     seqs = resolve_sequences(spec, runs_dir)

@@ -79,6 +79,27 @@ def test_write_outputs_round_trip(runs: Path, tmp_path: Path) -> None:
     assert len(back) == len(records) and md.read_text().startswith("# Comparison")
 
 
+def test_uncertainty_figure_across_sequences(runs: Path, tmp_path: Path) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from pipeline.report import uncertainty_curves, write_figures
+
+    for i, seq in enumerate(("seq_a", "seq_b")):
+        d = runs / seq / "slam"
+        d.mkdir(parents=True)
+        t = np.arange(5, dtype=np.int64) * 2_000_000_000 + 10**12
+        med = np.linspace(1.0, 0.1 * (i + 1), 5)
+        pq.write_table(pa.table({"scan": np.arange(5, dtype=np.int32), "t_ns": t, "u_p25": med / 2, "u_p50": med,
+                                 "u_p75": np.minimum(med * 1.5, 1.0)}), d / "map_stats.parquet")
+    curves = uncertainty_curves(runs, ["seq_a", "seq_b", "seq_c"])
+    assert set(curves) == {"seq_a", "seq_b"}
+    assert np.allclose(curves["seq_b"][:, 0], [0, 2, 4, 6, 8]) and curves["seq_b"][-1, 2] == pytest.approx(0.2)
+    records, _ = gather(runs, ["seq_a", "seq_b"])
+    written = write_figures(runs, records, tmp_path / "cmp.md")
+    assert [p.name for p in written] == ["cmp_auc.png", "cmp_uncertainty.png"]
+
+
 def test_bad_names(runs: Path) -> None:
     with pytest.raises(UserError, match="no run folders match"):
         resolve_sequences("nothing_*", runs)
@@ -95,6 +116,7 @@ def test_report_command(runs: Path, tmp_path: Path) -> None:
     assert "0.50 / 3.00" in r.stdout and "1.00 / 3.00" in r.stdout and "Table III" in r.stdout
     assert "seq_c: no evaluation" in r.stderr
     assert (tmp_path / "r.md").exists() and (tmp_path / "r.parquet").exists()
+    assert (tmp_path / "r_auc.png").stat().st_size > 1000  # Fig. 6 across the sequences
     r = cli("report", "--seqs", "seq_c", "--runs-dir", str(runs))
     assert r.returncode == 2 and "pipeline run evaluate --seq seq_c" in r.stderr and "Traceback" not in r.stderr
     r = cli("report", "--runs-dir", str(runs))
