@@ -239,7 +239,8 @@ def test_map_weight_prefers_true_pose() -> None:
         assert wins >= 27, wins
 
 
-def test_parallel_workers_equal_in_process_filter() -> None:
+@pytest.mark.parametrize("form", ["information", "covariance"])
+def test_parallel_workers_equal_in_process_filter(form: str) -> None:
     from stages.slam.parallel import ParallelHilbertMaps
 
     rng = np.random.default_rng(8)
@@ -247,10 +248,11 @@ def test_parallel_workers_equal_in_process_filter() -> None:
     scans = [sample_beams(s, [0, 0], 1.0, 5.0) for s in run.scans]
     b = hm.make_basis([14.0, 10.0], [0.0, 0.0], 64)
     u = odometry_increments(run.odometry)
-    serial = HilbertParticleMaps(b, 7, 2.0, 16.0, 0.36, HilbertWeighting())
+    serial = HilbertParticleMaps(b, 7, 2.0, 16.0, 0.36, HilbertWeighting(), form=form)  # type: ignore[arg-type]
     f1 = RBPF(serial, run.odometry[0], 7, MotionNoise(), np.random.default_rng(0))
     h1 = f1.run(u, scans)
-    with ParallelHilbertMaps(b, 7, 2.0, 16.0, 0.36, HilbertWeighting(), workers=2) as par:
+    with ParallelHilbertMaps(b, 7, 2.0, 16.0, 0.36, HilbertWeighting(), workers=2,
+                             form=form) as par:  # type: ignore[arg-type]
         f2 = RBPF(par, run.odometry[0], 7, MotionNoise(), np.random.default_rng(0))
         h2 = f2.run(u, scans)
         assert any(h2.resampled)
@@ -258,3 +260,22 @@ def test_parallel_workers_equal_in_process_filter() -> None:
         np.testing.assert_allclose(h2.n_eff, h1.n_eff, rtol=1e-9)
         for k in (0, 6):
             np.testing.assert_allclose(par.map_of(k)[1], serial.map_of(k)[1], atol=1e-9)
+
+
+def test_stacked_covariance_stays_symmetric_pd_over_thousands_of_updates() -> None:
+    """The in-place syrk downdates of the covariance form vs the information form after 2000 scans."""
+    rng = np.random.default_rng(9)
+    b = hm.make_basis([6.0, 6.0], [0.0, 0.0], 64)
+    w = HilbertWeighting(endpoint_tolerance=0.0)
+    c = HilbertParticleMaps(b, 2, 1.0, 16.0, 0.36, w, form="covariance")
+    i = HilbertParticleMaps(b, 2, 1.0, 16.0, 0.36, w, form="information")
+    for _ in range(2000):
+        poses = np.column_stack([rng.uniform(-1, 1, (2, 2)), rng.uniform(-3, 3, 2)])
+        s = sample_beams(rng.uniform(-3, 3, (int(rng.integers(1, 6)), 2)), [0, 0], 0.5, 5.0)
+        c.update(poses, s)
+        i.update(poses, s)
+    for k in range(2):
+        cov = c.map_of(k)[1]
+        assert np.linalg.eigvalsh(cov).min() > 0
+        np.testing.assert_allclose(cov, i.map_of(k)[1], rtol=1e-6, atol=1e-9 * np.abs(cov).max())
+        np.testing.assert_allclose(c.theta[k], i.theta[k], rtol=1e-6, atol=1e-8)

@@ -52,7 +52,7 @@ class SlamConfig:
     resampling: Resampling = "systematic"
     resample_threshold: float = 0.5
     map_update: Literal["kalman", "laplace"] = "kalman"
-    map_form: Literal["information", "covariance"] = "information"
+    map_form: Literal["auto", "information", "covariance"] = "auto"
     laplace_iterations: int = 20
     dtype: Literal["float64", "float32"] = "float64"
     workers: int = 2
@@ -83,6 +83,7 @@ class MethodResult:
     particles: F64 | None = None  # (T, Np, 3)
     theta: F64 | None = None  # best particle's final map
     cov: F64 | None = None
+    form: str = ""  # map form of the Hilbert methods
 
 
 def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]:
@@ -92,18 +93,46 @@ def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]
     return (hi - lo) / 2.0, (hi + lo) / 2.0
 
 
-def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_particles: int
+def step_flops(form: str, n: float, b: float, M: int, w: HilbertWeighting) -> float:
+    """Dominant floating-point operations of one particle's weight and update (for the form choice)."""
+    ring = w.ring_points * w.rings if (w.endpoint_tolerance > 0 and w.use_variance) else 0
+    exact = w.et_variance == "exact"
+    if form == "covariance":  # H^T cov (samples, ring points or Jacobians), S, W, W^T W
+        q = b * ring if exact else (2 * b if ring else 0)
+        return 2 * (n + q) * M**2 + 4 * n * n * M + n**3 / 3 + 2 * n * M**2
+    q = b * ring if exact else (2 * b if ring else 0)  # syrk, potrf, trsm of samples and ring points
+    return n * M**2 + M**3 / 3 + (n + q) * M**2
+
+
+def choose_form(cfg: SlamConfig, method: str, scans: Sequence[BeamSamples], M: int,
+                info_efficiency: float = 0.4) -> Literal["information", "covariance"]:
+    """``auto``: the form with the smaller modelled cost at the sequence's mean samples per scan.
+
+    The information form's kernels (potrf, trsm on 256 x 256) run at about ``info_efficiency`` of the
+    rate of the covariance form's matrix products (measured by benchmarks/bench_slam.py).
+    """
+    if cfg.map_form != "auto":
+        return cfg.map_form
+    n = float(np.mean([s.n for s in scans])) if len(scans) else 0.0
+    b = float(np.mean([len(s.endpoints) for s in scans])) if len(scans) else 0.0
+    w = cfg.weighting(method)
+    info = step_flops("information", n, b, M, w) / info_efficiency
+    return "information" if info < step_flops("covariance", n, b, M, w) else "covariance"
+
+
+def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_particles: int,
+                      form: Literal["information", "covariance"] = "information",
                       ) -> HilbertParticleMaps | ParallelHilbertMaps:
-    """The particle maps of a Hilbert method: worker processes for the information form when ``workers > 0``."""
-    if cfg.workers > 0 and cfg.map_form == "information":
+    """The particle maps of a Hilbert method, in ``workers`` processes when ``workers > 0``."""
+    if cfg.workers > 0:
         return ParallelHilbertMaps(
             basis, n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, cfg.weighting(method),
             update=cfg.map_update, dtype=np.dtype(cfg.dtype), laplace_iterations=cfg.laplace_iterations,
-            workers=cfg.workers)
+            workers=cfg.workers, form=form)
     return HilbertParticleMaps(
         basis, n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, cfg.weighting(method),
         update=cfg.map_update, dtype=np.dtype(cfg.dtype), laplace_iterations=cfg.laplace_iterations,
-        form=cfg.map_form,
+        form=form,
     )
 
 
@@ -129,12 +158,14 @@ def run_method(
                 on_step()
         return MethodResult(method, odometry.copy(), np.ones(len(odometry)), time.perf_counter() - t0)
     rng = np.random.default_rng(seed)
+    form: Literal["information", "covariance"] = "information"
     if method == "fastslam_grid":
         spec = make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution)
         maps: GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps = GridParticleMaps(
             spec, cfg.n_particles, cfg.grid, cfg.likelihood_exponent)
     elif method in HILBERT_METHODS:
-        maps = make_hilbert_maps(cfg, basis, method, cfg.n_particles)
+        form = choose_form(cfg, method, scans, basis.M)
+        maps = make_hilbert_maps(cfg, basis, method, cfg.n_particles, form)
     else:
         raise ValueError(f"unknown method {method!r}; one of {', '.join(METHODS)}")
     best_map: dict[str, F64] = {}
@@ -155,6 +186,7 @@ def run_method(
     return MethodResult(
         method, poses, np.asarray(h.n_eff), time.perf_counter() - t0, int(np.sum(h.resampled)),
         np.asarray(h.particles), best_map.get("theta"), best_map.get("cov"),
+        form if method in HILBERT_METHODS else "",
     )
 
 

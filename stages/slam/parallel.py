@@ -23,7 +23,7 @@ import numpy.typing as npt
 
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.particle_linalg import StackedInformation
+from stages.slam.particle_linalg import StackedCovariance, StackedInformation
 from stages.slam.rbpf import HilbertParticleMaps, HilbertWeighting
 
 F64 = npt.NDArray[np.floating[Any]]
@@ -32,7 +32,7 @@ _THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 @dataclass(frozen=True)
 class _Spec:
-    names: tuple[str, str, str]  # shared blocks: theta, info, chol
+    names: tuple[str, ...]  # shared blocks: theta, info, chol (information form) or theta, cov
     n_particles: int
     M: int
     dtype: str
@@ -45,6 +45,7 @@ class _Spec:
     weighting: HilbertWeighting
     update: str
     laplace_iterations: int
+    form: str
 
 
 def _attach(name: str, shape: tuple[int, ...], dtype: str) -> tuple[SharedMemory, npt.NDArray[Any]]:
@@ -55,13 +56,15 @@ def _attach(name: str, shape: tuple[int, ...], dtype: str) -> tuple[SharedMemory
 def _worker_main(conn: Connection, spec: _Spec) -> None:
     """Serve ``("step", poses, points, labels)`` requests on particles ``[lo, hi)`` until ``None``."""
     Np, M = spec.n_particles, spec.M
-    blocks = [_attach(spec.names[0], (Np, M), spec.dtype), _attach(spec.names[1], (Np, M, M), spec.dtype),
-              _attach(spec.names[2], (Np, M, M), spec.dtype)]
-    theta, info, chol = (b[1][spec.lo : spec.hi] for b in blocks)
+    blocks = [_attach(spec.names[0], (Np, M), spec.dtype)]
+    blocks += [_attach(name, (Np, M, M), spec.dtype) for name in spec.names[1:]]
+    arrays = tuple(b[1][spec.lo : spec.hi] for b in blocks)
     maps = HilbertParticleMaps(
         spec.basis, spec.hi - spec.lo, spec.lengthscale, spec.signal_variance, spec.noise_variance, spec.weighting,
         update=spec.update,  # type: ignore[arg-type]
-        dtype=spec.dtype, laplace_iterations=spec.laplace_iterations, form="information", arrays=(theta, info, chol),
+        dtype=spec.dtype, laplace_iterations=spec.laplace_iterations,
+        form=spec.form,  # type: ignore[arg-type]
+        arrays=arrays,
     )
     try:
         while True:
@@ -77,13 +80,13 @@ def _worker_main(conn: Connection, spec: _Spec) -> None:
             except Exception as exc:  # report, keep serving
                 conn.send(("error", f"{type(exc).__name__}: {exc}"))
     finally:
-        del theta, info, chol, maps
+        del arrays, maps
         for shm, _ in blocks:
             shm.close()
 
 
 class ParallelHilbertMaps:
-    """``ParticleMaps`` in the information form, computed by ``workers`` processes on shared memory.
+    """``ParticleMaps`` computed by ``workers`` processes on shared memory (either map form).
 
     ``log_likelihood`` runs the scan's weight and its map update in one round trip (RBPF always
     updates right after weighting, on the same poses); ``update`` is then a no-op.
@@ -101,21 +104,34 @@ class ParallelHilbertMaps:
         dtype: npt.DTypeLike = np.float64,
         laplace_iterations: int = 20,
         workers: int = 2,
+        form: Literal["information", "covariance"] = "information",
     ) -> None:
         self.basis = basis
         self.dtype = np.dtype(dtype)
+        self.form = form
         M = basis.M
-        _, info0, _ = hm.prior_information(basis, lengthscale, signal_variance)
         self._shm: list[SharedMemory] = []
         self.theta = self._shared((n_particles, M))
         self.theta[...] = 0
-        init = StackedInformation(np.diag(info0), 1, self.dtype)
-        self.info = self._shared((n_particles, M, M))
-        self.chol = self._shared((n_particles, M, M))
-        self.info[...] = init.info[0]
-        self.chol[...] = init.chol[0]
-        # kernels for the parent's queries of single maps
-        self.stack = StackedInformation(np.diag(info0), n_particles, self.dtype, arrays=(self.info, self.chol))
+        self.stack: StackedInformation | None = None
+        self.cov: npt.NDArray[Any] | None = None
+        self.cstack = StackedCovariance(np.ones(1), 0, self.dtype)
+        if form == "information":
+            _, info0, _ = hm.prior_information(basis, lengthscale, signal_variance)
+            init = StackedInformation(np.diag(info0), 1, self.dtype)
+            info = self._shared((n_particles, M, M))
+            chol = self._shared((n_particles, M, M))
+            info[...] = init.info[0]
+            chol[...] = init.chol[0]
+            # kernels for the parent's queries of single maps
+            self.stack = StackedInformation(np.diag(info0), n_particles, self.dtype, arrays=(info, chol))
+            self._stacks = [self.theta, info, chol]
+        else:
+            _, cov0 = hm.prior(basis, lengthscale, signal_variance, dtype=self.dtype)
+            self.cov = self._shared((n_particles, M, M))
+            self.cov[...] = cov0
+            self.cstack = StackedCovariance(np.diag(cov0), n_particles, self.dtype, array=self.cov)
+            self._stacks = [self.theta, self.cov]
         workers = max(1, min(workers, n_particles))
         bounds = np.linspace(0, n_particles, workers + 1).round().astype(int)
         ctx = mp.get_context("spawn")
@@ -126,9 +142,9 @@ class ParallelHilbertMaps:
             for v in _THREAD_VARS:
                 os.environ[v] = "1"
             for lo, hi in itertools.pairwise(bounds):
-                spec = _Spec((self._shm[0].name, self._shm[1].name, self._shm[2].name), n_particles, M,
-                             self.dtype.name, int(lo), int(hi), basis, lengthscale, signal_variance, noise_variance,
-                             weighting, update, laplace_iterations)
+                spec = _Spec(tuple(b.name for b in self._shm), n_particles, M, self.dtype.name, int(lo), int(hi),
+                             basis, lengthscale, signal_variance, noise_variance, weighting, update,
+                             laplace_iterations, form)
                 parent, child = ctx.Pipe()
                 proc = ctx.Process(target=_worker_main, args=(child, spec), daemon=True)
                 proc.start()
@@ -170,11 +186,14 @@ class ParallelHilbertMaps:
 
     def select(self, indices: npt.NDArray[np.int64]) -> None:
         """Permute the shared maps (``a[idx]`` is a copy, then written back)."""
-        for a in (self.theta, self.info, self.chol):
+        for a in self._stacks:
             a[...] = a[indices]
 
     def map_of(self, k: int) -> tuple[F64, F64]:
-        return self.theta[k].astype(np.float64), hm.covariance_from_information(self.stack.lower_factor(k))
+        """Mean and covariance of particle k's map (float64)."""
+        if self.stack is not None:
+            return self.theta[k].astype(np.float64), hm.covariance_from_information(self.stack.lower_factor(k))
+        return self.theta[k].astype(np.float64), self.cstack.full(k)
 
     def close(self) -> None:
         for c in getattr(self, "_conns", []):
@@ -188,8 +207,11 @@ class ParallelHilbertMaps:
                 p.terminate()
         self._conns, self._procs = [], []
         # drop our views before releasing the blocks
-        self.theta = self.info = self.chol = np.zeros(0)
-        self.stack.info = self.stack.chol = np.zeros((0, 0, 0))
+        self.theta = np.zeros(0)
+        self.cov = None
+        self._stacks = []
+        if self.stack is not None:
+            self.stack.info = self.stack.chol = np.zeros((0, 0, 0))
         for shm in self._shm:
             shm.close()
             shm.unlink()

@@ -106,3 +106,56 @@ class StackedInformation:
         """The full symmetric ``Y_k`` (float64)."""
         low = np.tril(self.info[k].T.astype(np.float64))
         return low + np.tril(low, -1).T
+
+
+class StackedCovariance:
+    """Covariances of ``Np`` maps, updated by symmetric rank-N downdates in place.
+
+    ``cov[k].T`` (Fortran view) holds ``cov_k`` in its lower triangle: ``transform`` multiplies with
+    BLAS ``symm`` and ``downdate`` subtracts ``W^T W`` with ``syrk``, each reading the map once, where
+    ``P - W^T W`` with numpy would write a temporary and make three passes over the stack.
+    """
+
+    def __init__(self, prior_diag: npt.ArrayLike, n_maps: int, dtype: npt.DTypeLike = np.float64,
+                 array: FloatArray | None = None) -> None:
+        d = np.asarray(prior_diag, dtype=np.float64)
+        self.dtype = np.dtype(dtype)
+        M = d.size
+        if array is not None:
+            self.cov = array
+        else:
+            self.cov = np.zeros((n_maps, M, M), dtype=self.dtype)
+            self.cov[:, np.arange(M), np.arange(M)] = d.astype(self.dtype)
+        self._symm, self._syrk = get_blas_funcs(("symm", "syrk"), dtype=self.dtype)
+
+    @property
+    def n(self) -> int:
+        return int(self.cov.shape[0])
+
+    def transform(self, V: FloatArray) -> FloatArray:
+        """Rows ``v^T cov_k`` for ``V (Np, K, M)``."""
+        V = np.asarray(V, dtype=self.dtype)
+        out = np.empty(V.shape, dtype=self.dtype)
+        if V.shape[1] == 0:
+            return out
+        symm = self._symm
+        for k in range(self.n):
+            out[k].T[...] = symm(1.0, self.cov[k].T, V[k].T, side=0, lower=1)
+        return out
+
+    def downdate(self, W: FloatArray) -> None:
+        """``cov_k -= W_k^T W_k`` for ``W (Np, N, M)`` (lower triangle)."""
+        W = np.asarray(W, dtype=self.dtype)
+        if W.shape[1] == 0:
+            return
+        syrk = self._syrk
+        for k in range(self.n):
+            syrk(-1.0, W[k].T, beta=1.0, c=self.cov[k].T, trans=0, lower=1, overwrite_c=1)
+
+    def select(self, indices: npt.NDArray[np.int64]) -> None:
+        self.cov = self.cov[indices]
+
+    def full(self, k: int) -> npt.NDArray[np.float64]:
+        """The full symmetric ``cov_k`` (float64)."""
+        low = np.tril(self.cov[k].T.astype(np.float64))
+        return low + np.tril(low, -1).T

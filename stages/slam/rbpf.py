@@ -18,7 +18,7 @@ import numpy.typing as npt
 
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, stencil_offsets, to_world
-from stages.slam.particle_linalg import StackedInformation
+from stages.slam.particle_linalg import StackedCovariance, StackedInformation
 
 Resampling = Literal["systematic", "stratified", "multinomial"]
 F64 = npt.NDArray[np.floating[Any]]
@@ -171,6 +171,18 @@ class CovarianceMetric:
         return np.einsum("...m,...m->...", Ta, Vb)
 
 
+class StackedCovarianceMetric:
+    """Quadratic forms with a :class:`StackedCovariance` (lower triangles, BLAS symm)."""
+
+    def __init__(self, stack: StackedCovariance) -> None:
+        self.stack = stack
+
+    def transform(self, V: F64) -> F64:
+        return self.stack.transform(V)
+
+    inner = staticmethod(CovarianceMetric.inner)
+
+
 class InformationMetric:
     """Quadratic forms with the information factor stored (``Y = L L^T``): ``transform(V)`` has rows ``L^-1 v``.
 
@@ -190,7 +202,7 @@ class InformationMetric:
         return np.einsum("...m,...m->...", Ta, Tb)
 
 
-Metric = CovarianceMetric | InformationMetric
+Metric = CovarianceMetric | StackedCovarianceMetric | InformationMetric
 
 
 def log_occupancy_terms(mean: F64, var: F64 | None) -> tuple[F64, F64]:
@@ -216,12 +228,14 @@ def hilbert_log_likelihood(
     phi_t: F64 | None = None,
     jac: F64 | None = None,
     jac_t: F64 | None = None,
+    ring: tuple[F64, F64] | None = None,
 ) -> F64:
     """Per-particle ``log Pr(z~[i] | x_k[i], D_k[i-1])`` (eq. 23-30), batched over particles.
 
     ``cov`` is the stack of covariances ``(Np, M, M)`` or a metric of the information form.
     ``phi`` ``(Np, N, M)``, ``phi_t`` (its metric transform) and, for the Taylor tolerance, the endpoint
-    Jacobians ``jac (Np, B, 2, M)`` and their transform may be passed in when already computed.
+    Jacobians ``jac (Np, B, 2, M)`` and their transform, or for the exact tolerance the ring points'
+    features ``(Np, B K, M)`` and their transform (``ring``), may be passed in when already computed.
     """
     metric: Metric = CovarianceMetric(cov) if isinstance(cov, np.ndarray) else cov
     if samples.n == 0:
@@ -239,7 +253,7 @@ def hilbert_log_likelihood(
     total = np.sum(log_free[:, ~pos], axis=1)
     if weighting.endpoint_tolerance > 0 and np.any(pos):
         et = _endpoint_tolerant_log_o(basis, theta, metric, poses, samples, weighting, phi, phi_t, mean, var,
-                                      jac, jac_t)
+                                      jac, jac_t, ring)
         total = total + np.sum(et, axis=1)
     else:
         total = total + np.sum(log_o[:, pos], axis=1)
@@ -259,6 +273,7 @@ def _endpoint_tolerant_log_o(
     var: F64 | None,
     jac: F64 | None,
     jac_t: F64 | None,
+    ring: tuple[F64, F64] | None = None,
 ) -> F64:
     """``log max_{|q - p| <= r_e} o_k(q)`` at every endpoint (eq. 29), shape ``(Np, B)``.
 
@@ -277,8 +292,11 @@ def _endpoint_tolerant_log_o(
     if var_c is not None:
         assert phi_t is not None
         if weighting.et_variance == "exact":
-            phi_q = hm.features(basis, q.reshape(Np, B * K, 2), dtype=dtype)
-            t_q = metric.transform(phi_q)
+            if ring is not None:
+                phi_q, t_q = ring
+            else:
+                phi_q = hm.features(basis, q.reshape(Np, B * K, 2), dtype=dtype)
+                t_q = metric.transform(phi_q)
             var_q = np.maximum(metric.inner(t_q, phi_q, t_q, phi_q), 0.0).reshape(Np, B, K)
         else:
             # Phi(p + d) ~ Phi(p) + J d: var ~ v + 2 g.d + d^T G d (a Gauss-Newton quadratic, >= 0)
@@ -314,10 +332,11 @@ class ParticleMaps(Protocol):
 class HilbertParticleMaps:
     """Every particle's Hilbert-GP weight posterior (eq. 20), stacked for batched products.
 
-    ``form = "information"`` stores ``Y = cov^-1`` and its Cholesky factor (the default: positive
-    definite by construction, cheaper for scans with many samples); ``"covariance"`` stores ``cov``
-    and applies eq. 15-19 literally. ``log_likelihood`` caches the scan's features and their metric
-    transform so the following ``update`` (same poses, same samples) reuses them.
+    ``form = "covariance"`` stores ``cov`` and applies eq. 15-19 (square-root gain, symmetric rank-N
+    downdate in place); ``"information"`` stores ``Y = cov^-1`` and its Cholesky factor (positive
+    definite by construction, cheaper for scans with many samples). ``log_likelihood`` caches the scan's
+    features (samples, and the tolerance ring points or endpoint Jacobians) with their metric transform,
+    computed in one BLAS call per particle, so the following ``update`` (same poses) reuses them.
     """
 
     def __init__(
@@ -332,9 +351,10 @@ class HilbertParticleMaps:
         dtype: npt.DTypeLike = np.float64,
         laplace_iterations: int = 20,
         form: Literal["information", "covariance"] = "information",
-        arrays: tuple[F64, F64, F64] | None = None,
+        arrays: tuple[F64, ...] | None = None,
     ) -> None:
-        """``arrays``: existing ``(theta, info, chol)`` stacks to work on in place (information form)."""
+        """``arrays``: existing stacks to work on in place: ``(theta, info, chol)`` (information form) or
+        ``(theta, cov)`` (covariance form, lower triangles)."""
         self.basis = basis
         self.noise_variance = noise_variance
         self.weighting = weighting
@@ -343,76 +363,108 @@ class HilbertParticleMaps:
         self.dtype = np.dtype(dtype)
         self.form = form
         self.prior_diag = hm.prior_variances(basis, lengthscale, signal_variance)
-        self.cov: F64 | None = None
         self.stack: StackedInformation | None = None
+        self.cstack: StackedCovariance | None = None
         if form == "information":
             _, info, _ = hm.prior_information(basis, lengthscale, signal_variance)
-            if arrays is not None:
-                self.theta = arrays[0]
-                self.stack = StackedInformation(np.diag(info), n_particles, self.dtype, arrays=arrays[1:])
-            else:
-                self.stack = StackedInformation(np.diag(info), n_particles, self.dtype)
-                self.theta = np.zeros((n_particles, basis.M), dtype=self.dtype)
+            pair = None if arrays is None else (arrays[1], arrays[2])
+            self.stack = StackedInformation(np.diag(info), n_particles, self.dtype, arrays=pair)
         else:
-            self.theta, self.cov = hm.prior(basis, lengthscale, signal_variance, (n_particles,), self.dtype)
-        self._cache: tuple[F64, BeamSamples, F64, F64, F64 | None, F64 | None] | None = None
+            self.cstack = StackedCovariance(self.prior_diag, n_particles, self.dtype,
+                                            array=None if arrays is None else arrays[1])
+        self.theta = np.zeros((n_particles, basis.M), dtype=self.dtype) if arrays is None else arrays[0]
+        self._cache: tuple[Any, ...] | None = None
+
+    @property
+    def cov(self) -> F64 | None:
+        """The covariance stack (lower triangles in the Fortran view), covariance form only."""
+        return None if self.cstack is None else self.cstack.cov
 
     @property
     def metric(self) -> Metric:
         if self.stack is not None:
             return InformationMetric(self.stack)
-        assert self.cov is not None
-        return CovarianceMetric(self.cov)
+        assert self.cstack is not None
+        return StackedCovarianceMetric(self.cstack)
 
     def map_of(self, k: int) -> tuple[F64, F64]:
         """Mean and covariance of particle k's map (float64)."""
         if self.stack is not None:
             return self.theta[k].astype(np.float64), hm.covariance_from_information(self.stack.lower_factor(k))
-        assert self.cov is not None
-        return self.theta[k].astype(np.float64), self.cov[k].astype(np.float64)
+        assert self.cstack is not None
+        return self.theta[k].astype(np.float64), self.cstack.full(k)
 
-    def _products(self, poses: F64, samples: BeamSamples) -> tuple[F64, F64, F64 | None, F64 | None]:
-        """Features of the scan (and the endpoint Jacobians for the Taylor tolerance), metric-transformed
-        in one call per particle."""
+    def _products(self, poses: F64, samples: BeamSamples) -> tuple[Any, ...]:
+        """``(phi, phi_t, jac, jac_t, ring)`` of the scan, transformed by one call per particle."""
         c = self._cache
         if c is not None and c[0] is poses and c[1] is samples:
-            return c[2], c[3], c[4], c[5]
+            return c[2:]
         phi = hm.features(self.basis, to_world(poses, samples.points), dtype=self.dtype)
         w = self.weighting
-        jac = jac_t = None
-        if w.use_variance and w.endpoint_tolerance > 0 and w.et_variance == "taylor" and np.any(samples.labels > 0):
-            jac = endpoint_jacobians(self.basis, poses, samples, self.dtype)
-            Np, B = jac.shape[:2]
-            both = self.metric.transform(np.concatenate([phi, jac.reshape(Np, 2 * B, -1)], axis=1))
-            phi_t, jac_t = both[:, : phi.shape[1]], both[:, phi.shape[1] :].reshape(jac.shape)
+        Np, N = phi.shape[:2]
+        jac = jac_t = ring = None
+        pos = samples.labels > 0
+        if w.use_variance and w.endpoint_tolerance > 0 and np.any(pos):
+            if w.et_variance == "taylor":
+                jac = endpoint_jacobians(self.basis, poses, samples, self.dtype)
+                extra = jac.reshape(Np, -1, self.basis.M)
+            else:
+                offs = stencil_offsets(w.endpoint_tolerance, w.ring_points, w.rings)[1:]
+                q = to_world(poses, samples.points[pos])[:, :, None, :] + offs
+                extra = hm.features(self.basis, q.reshape(Np, -1, 2), dtype=self.dtype)
+            both = self.metric.transform(np.concatenate([phi, extra], axis=1))
+            phi_t, extra_t = both[:, :N], both[:, N:]
+            if jac is not None:
+                jac_t = extra_t.reshape(jac.shape)
+            else:
+                ring = (extra, extra_t)
         else:
             phi_t = self.metric.transform(phi)
-        self._cache = (poses, samples, phi, phi_t, jac, jac_t)
-        return phi, phi_t, jac, jac_t
+        self._cache = (poses, samples, phi, phi_t, jac, jac_t, ring)
+        return phi, phi_t, jac, jac_t, ring
 
     def log_likelihood(self, poses: F64, samples: BeamSamples) -> F64:
         if samples.n == 0:
             return np.zeros(len(poses))
-        phi, phi_t, jac, jac_t = self._products(poses, samples)
+        phi, phi_t, jac, jac_t, ring = self._products(poses, samples)
         return hilbert_log_likelihood(self.basis, self.theta, self.metric, poses, samples, self.weighting,
-                                      phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t)
+                                      phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring)
 
     def update(self, poses: F64, samples: BeamSamples) -> None:
         if samples.n == 0:
             return
-        phi, phi_t, _, _ = self._products(poses, samples)
+        phi, phi_t = self._products(poses, samples)[:2]
         labels = samples.labels.astype(self.dtype)
         if self.stack is not None:
             self._update_information(self.stack, phi, phi_t, labels)
         else:
-            assert self.cov is not None
-            if self.update_kind == "kalman":
-                self.theta, self.cov = hm.kalman_update(
-                    self.theta, self.cov, phi, labels, self.noise_variance, phi_cov=phi_t, inplace=True)
-            else:
-                self.theta, self.cov = hm.laplace_update(
-                    self.theta, self.cov, phi, labels, phi_cov=phi_t, max_iter=self.laplace_iterations)
+            assert self.cstack is not None
+            self._update_covariance(self.cstack, phi, phi_t, labels)
         self._cache = None
+
+    def _update_covariance(self, st: StackedCovariance, phi: F64, A: F64, labels: F64) -> None:
+        """eq. 15-19 with ``A = H^T cov``: ``S = R R^T``, ``W = R^-1 A``, ``cov -= W^T W`` (syrk)."""
+        n = phi.shape[1]
+        if self.update_kind == "kalman":
+            S = np.matmul(A, np.swapaxes(phi, -1, -2)).astype(np.float64)
+            S = 0.5 * (S + np.swapaxes(S, -1, -2))
+            S[:, np.arange(n), np.arange(n)] += self.noise_variance
+            Rinv = np.linalg.inv(np.linalg.cholesky(S)).astype(self.dtype)
+            W = np.matmul(Rinv, A)
+            innov = labels - np.einsum("knm,km->kn", phi, self.theta)
+            self.theta += np.einsum("knm,kn->km", W, np.einsum("kij,kj->ki", Rinv, innov))
+        else:
+            # Appendix, eq. 43 by Woodbury: cov -= V^T V, V = L^-1 W^1/2 A, B = I + W^1/2 K W^1/2 = L L^T
+            K = np.matmul(A, np.swapaxes(phi, -1, -2)).astype(np.float64)
+            K = 0.5 * (K + np.swapaxes(K, -1, -2))
+            m = np.einsum("knm,km->kn", phi, self.theta)
+            f, w = hm.laplace_mode(K, m, labels, self.laplace_iterations)
+            a = (labels + 1.0) / 2.0 - hm.sigmoid(f)
+            sw = np.sqrt(w)
+            L = np.linalg.cholesky(np.eye(n) + sw[:, :, None] * K * sw[:, None, :])
+            W = np.matmul(np.linalg.inv(L).astype(self.dtype), (sw[:, :, None] * A).astype(self.dtype))
+            self.theta += np.einsum("knm,kn->km", A, a.astype(self.dtype))
+        st.downdate(W)
 
     def _update_information(self, st: StackedInformation, phi: F64, phi_t: F64, labels: F64) -> None:
         if self.update_kind == "kalman":
@@ -437,8 +489,8 @@ class HilbertParticleMaps:
         if self.stack is not None:
             self.stack.select(indices)
         else:
-            assert self.cov is not None
-            self.cov = self.cov[indices]
+            assert self.cstack is not None
+            self.cstack.select(indices)
         self._cache = None
 
 

@@ -63,9 +63,10 @@ class SlamParams(StageParams):
     map_update: Literal["kalman", "laplace"] = Field("kalman", description="map update: Kalman (eq. 15-19) or "
                                                      "recursive Laplace (Appendix)")
     laplace_iterations: int = Field(20, ge=1, description="Newton iterations of the Laplace update at most")
-    map_form: Literal["information", "covariance"] = Field(
-        "information", description="particle map storage: information matrix and Cholesky factor (same posterior, "
-        "positive definite by construction, faster for dense scans) or covariance (eq. 15-19 literally)")
+    map_form: Literal["auto", "information", "covariance"] = Field(
+        "auto", description="particle map storage: covariance (eq. 15-19 literally; cheaper for sparse scans), "
+        "information matrix with its Cholesky factor (same posterior; cheaper for dense scans), or auto (by a "
+        "cost model at the sequence's samples per scan)")
     dtype: Literal["float64", "float32"] = Field("float64", description="precision of the particle maps")
     workers: int = Field(2, ge=0, description="worker processes sharing the particle maps (information form), one "
                          "BLAS thread each; 0 = in process")
@@ -176,6 +177,7 @@ class SlamStage(Stage):
                     "seconds_per_scan": round(res.seconds / max(len(scans), 1), 5),
                     "resamplings": res.resampled,
                     "n_eff_median": float(np.median(res.n_eff)) if len(res.n_eff) else None,
+                    "map_form": res.form,
                 }
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
                                   f"s/scan), {res.resampled} resamplings[/]")
