@@ -17,31 +17,51 @@ class _Params(BaseModel):
 
 
 class RadarParams(_Params):
-    """Single-chip FMCW radar detections (what the TI driver publishes on /mmWaveDataHdl/RScan)."""
+    """Single-chip FMCW radar detections (what the TI driver publishes on /mmWaveDataHdl/RScan).
+
+    Scene: persistent scatterers (``simulator.scatterers``). Processing: the TI mmWave SDK chain (range and
+    Doppler FFT, CFAR in Doppler and range, peak grouping, 64-bin azimuth FFT, elevation by phase
+    comparison); see ``simulator.radar`` and data/datasets/coloradar.md ("radar model") for the evidence.
+    """
 
     fov_azimuth_deg: float = Field(60.0, gt=0, lt=90, description="half field of view in azimuth (driver filter)")
     fov_elevation_deg: float = Field(25.0, gt=0, lt=80, description="half field of view in elevation (driver filter)")
     min_range: float = Field(0.3, ge=0, description="closest reported detection, m")
-    max_range: float = Field(12.0, gt=0, description="farthest reported detection, m")
-    n_rays: int = Field(480, ge=10, description="rays cast per scan to find candidate reflectors")
-    range_noise: float = Field(0.02, ge=0, description="range noise std before range-bin quantisation, m")
-    range_resolution: float = Field(0.125, ge=0,
-                                    description="range bin width, reported ranges are bin centres (0: off)")
-    azimuth_noise_deg: float = Field(3.0, ge=0, description="azimuth noise std, degrees")
-    elevation_noise_deg: float = Field(7.0, ge=0, description="elevation noise std, degrees")
-    doppler_noise: float = Field(0.03, ge=0, description="Doppler noise std before quantisation, m/s")
-    doppler_resolution: float = Field(0.04, ge=0, description="Doppler bin width, m/s (0: no quantisation)")
+    max_range: float = Field(12.0, gt=0, description="farthest reported detection (CFAR range limit), m")
+    range_resolution: float = Field(0.125, gt=0, description="range bin width; reported range = bin index * width, m")
+    doppler_resolution: float = Field(0.04, gt=0, description="Doppler bin width; reported Doppler = bin * width, m/s")
     doppler_max: float = Field(2.56, gt=0, description="unambiguous Doppler; faster radial speeds wrap, m/s")
-    snr_ref_db: float = Field(42.0, description="SNR of a 0 dB surface at 1 m, normal incidence, on boresight")
-    range_loss_db_per_decade: float = Field(30.0, ge=0, description="SNR loss per decade of range (extended targets)")
-    incidence_exponent: float = Field(2.0, ge=0, description="SNR scales with cos(incidence)**exponent")
+    n_azimuth_bins: int = Field(64, ge=8, description="azimuth FFT size (zero-padded 8 virtual azimuth channels)")
+    snr_ref_db: float = Field(84.5, description="per-channel SNR of a 1 m^2 point scatterer at 1 m on boresight, dB "
+                                                "(link budget after range and Doppler FFT; coloradar.md)")
+    range_loss_db_per_decade: float = Field(40.0, ge=0, description="SNR loss per decade of range (radar equation, "
+                                                                    "point scatterers: 40)")
     beam_azimuth_3db_deg: float = Field(55.0, gt=0, description="azimuth angle where the antenna gain is -3 dB")
     beam_elevation_3db_deg: float = Field(22.0, gt=0, description="elevation angle where the antenna gain is -3 dB")
-    threshold_db: float = Field(12.0, description="CFAR detection threshold on the SNR, dB")
+    cfar_threshold_db: float = Field(15.0, description="CFAR threshold over the noise estimate, dB (cfarCfg)")
+    cfar_range_window: int = Field(8, ge=1, description="range CFAR (CASO) one-sided noise window, bins")
+    cfar_range_guard: int = Field(4, ge=0, description="range CFAR one-sided guard, bins")
+    cfar_doppler_window: int = Field(4, ge=1, description="Doppler CFAR (CA, cyclic) one-sided noise window, bins")
+    cfar_doppler_guard: int = Field(2, ge=0, description="Doppler CFAR one-sided guard, bins")
+    peak_grouping: bool = Field(True, description="keep a detected cell only if no range/Doppler neighbour is stronger")
+    multi_peak_ratio: float = Field(0.5, ge=0, le=1, description="report a second azimuth peak of a cell when its "
+                                                                 "power exceeds this share of the first (0: off)")
     max_points: int = Field(200, ge=1, description="most detections reported per scan (strongest kept)")
     clutter_rate: float = Field(3.0, ge=0, description="mean number of clutter false alarms per scan (Poisson)")
-    ghost_probability: float = Field(0.3, ge=0, le=1, description="chance that a specular return spawns a ghost")
-    ghost_loss_db: float = Field(3.0, ge=0, description="extra loss of the double-bounce path, dB")
+    ghost_loss_db: float = Field(3.0, ge=0, description="extra loss of a double-bounce (mirror) path besides the "
+                                                        "mirror's reflectivity, dB")
+    scatterer_density: float = Field(4.0, gt=0, description="diffuse scatterers per m^2 on walls, boxes, floor and "
+                                                             "ceiling")
+    surface_sigma0_db: float = Field(-15.0, description="backscatter coefficient of a 0 dB material at normal "
+                                                        "incidence, dB m^2/m^2")
+    incidence_exponent: float = Field(2.0, ge=0, description="diffuse backscatter scales with cos(incidence)**exponent")
+    dihedral_rcs_db: float = Field(10.0, description="RCS of a concave corner or wall/floor junction, dBsm")
+    trihedral_rcs_db: float = Field(15.0, description="RCS of a concave room corner at the floor or ceiling, dBsm")
+    edge_rcs_db: float = Field(-10.0, description="RCS of a convex edge (diffraction), dBsm")
+    pillar_rcs_db: float = Field(5.0, description="RCS of a 0.1 m radius pillar (specular line), dBsm; "
+                                                  "scales with the radius")
+    tip_loss_db: float = Field(15.0, ge=0, description="loss of a line scatterer seen beyond its end (tip), dB")
+    strong_rcs_spread_db: float = Field(3.0, ge=0, description="std of the once-drawn RCS of strong scatterers, dB")
     time_jitter: float = Field(0.001, ge=0, description="std of the scan period jitter, s")
 
 

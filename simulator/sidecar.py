@@ -3,7 +3,8 @@
 - ``radar_labels.parquet``: scan:int32 (message index on the radar topic = .bin file index), t_ns:int64
   (header stamp), point:int32 (index within the scan), label:int8 (0 surface return, 1 clutter false
   alarm, 2 multipath ghost), x_true, y_true, z_true: float32 (noise-free position in the radar frame;
-  for ghosts the mirror image behind the wall, for clutter the reported position);
+  for ghosts the mirror image behind the wall, for clutter the reported position), cell_scatterers:int16
+  (returns within 10 dB of the strongest in the point's range-Doppler cell: 1 for a lone scatterer);
 - ``trajectory.parquet``: at every IMU sample, t_ns:int64, the base pose x y z qx qy qz qw (world <- base),
   world velocity vx vy vz and acceleration ax ay az, base-frame angular velocity wx wy wz, and the true
   IMU biases bgx bgy bgz bax bay baz, all float64;
@@ -47,6 +48,7 @@ class SidecarWriter:
                 "point": np.arange(n, dtype=np.int32),
                 "label": scan.labels.astype(np.int8),
                 "x_true": scan.xyz_true[:, 0], "y_true": scan.xyz_true[:, 1], "z_true": scan.xyz_true[:, 2],
+                "cell_scatterers": scan.cell_scatterers.astype(np.int16),
             })
         st = w.truth
         q = st.quaternion
@@ -84,14 +86,15 @@ class SidecarWriter:
     def close(self, extra: dict[str, Any]) -> dict[str, Any]:
         self.folder.mkdir(parents=True, exist_ok=True)
         label_types = {"scan": pa.int32(), "t_ns": pa.int64(), "point": pa.int32(), "label": pa.int8(),
-                       "x_true": pa.float32(), "y_true": pa.float32(), "z_true": pa.float32()}
+                       "x_true": pa.float32(), "y_true": pa.float32(), "z_true": pa.float32(),
+                       "cell_scatterers": pa.int16()}
         pq.write_table(self._table(self.labels, label_types), self.folder / "radar_labels.parquet")
         pq.write_table(self._table(self.traj, {"t_ns": pa.int64()}), self.folder / "trajectory.parquet")
         (self.folder / "world.toml").write_text(self.sim.world.text)
         sim = self.sim
         meta = {
             "generator": "radar-pipeline simulator",
-            "sidecar_version": 1,
+            "sidecar_version": 2,
             "world": sim.world.spec.name,
             "duration_s": sim.duration,
             "seed": sim.seed,
@@ -105,6 +108,7 @@ class SidecarWriter:
             "rig": {f"{e.parent}<-{e.child}": {"translation": list(e.translation), "quaternion": list(e.quaternion)}
                     for e in (*rig.TF_TRANSFORMS, *rig.TF_STATIC_TRANSFORMS, rig.BASE_TO_LIDAR)},
             "stats": {**self.stats(), **extra},
+            "scatterers": len(sim.scatterers),
         }
         (self.folder / "meta.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
         return meta

@@ -18,10 +18,12 @@ from simulator import lidar as lidar_model
 from simulator import radar as radar_model
 from simulator import rig
 from simulator.params import ImuParams, LidarParams, RadarParams, make_params
+from simulator.scatterers import Scatterers, build_scatterers
 from simulator.trajectory import Trajectory, TrajectoryState
 from simulator.world import World
 
 STREAM_TIMING, STREAM_RADAR, STREAM_LIDAR, STREAM_IMU, STREAM_IMU_BIAS, STREAM_LATENCY = 1, 2, 3, 4, 5, 6
+STREAM_SCATTERERS = 7
 
 NS = 1_000_000_000
 
@@ -72,6 +74,8 @@ class Simulation:
         self.lidar_p: LidarParams = make_params(LidarParams, world.spec.lidar, f"{where} [lidar]")
         self.imu_p: ImuParams = make_params(ImuParams, world.spec.imu, f"{where} [imu]")
         self.traj = Trajectory(world.spec.trajectory, self.duration, floor=world.spec.floor)
+        self.scatterers: Scatterers = build_scatterers(world.spec, self.radar_p,
+                                                       np.random.default_rng([self.seed, STREAM_SCATTERERS]))
         self.radar_yaw = rig.yaw_of(rig.BASE_TO_RADAR)
         self.lidar_yaw = rig.yaw_of(rig.BASE_TO_LIDAR)
 
@@ -106,7 +110,7 @@ class Simulation:
         st = self.traj.state(t)
         pos, vel, _ = st.sensor(rig.BASE_TO_RADAR.t)
         return [
-            radar_model.simulate_scan(self.world.scene, self.radar_p, int(i), float(t[j]), pos[j],
+            radar_model.simulate_scan(self.world.scene, self.scatterers, self.radar_p, int(i), float(t[j]), pos[j],
                                       float(st.yaw[j] + self.radar_yaw), vel[j],
                                       np.random.default_rng([self.seed, STREAM_RADAR, int(i)]))
             for j, i in enumerate(idx)

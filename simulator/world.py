@@ -31,7 +31,8 @@ class Material(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     radar_db: float = Field(0.0, description="radar reflectivity offset in dB added to the SNR of a return")
-    specular: float = Field(0.5, ge=0.0, le=1.0, description="0..1 scale of the multipath (ghost) probability")
+    specular: float = Field(0.5, ge=0.0, le=1.0, description="amplitude reflection coefficient of the surface as a "
+                                                              "mirror for multipath (radar ghosts), 0..1")
     lidar_reflectivity: float = Field(0.5, gt=0.0, le=1.0, description="lidar diffuse reflectivity, 0..1")
 
 

@@ -76,7 +76,9 @@ def test_pointcloud2_layouts(bag: dict[str, list[tuple[int, Any, str]]]) -> None
     radar = [m for _, m, _ in bag["/mmWaveDataHdl/RScan"]]
     assert all(m.height == 1 for m in radar)
     counts = np.array([m.width for m in radar])
-    assert 20 <= np.median(counts) <= 200 and counts.max() <= 200
+    # sparse like the TI chain's output (CFAR + peak grouping: about one point per strong feature), never empty
+    # for long, and never above the driver's cap
+    assert 5 <= np.median(counts) and counts.max() <= 200 and np.mean(counts > 0) > 0.9
     lidar = [m for _, m, _ in bag["/os1_cloud_node/points"]]
     assert {(m.height, m.width) for m in lidar} == {(16, 256)}
     a = cloud_array(lidar[3])
@@ -190,7 +192,7 @@ def test_sidecar_labels_match_the_log(bag_path: Path, bag: dict[str, list[tuple[
         sel = scan == i
         assert np.array_equal(point[sel], np.arange(m.width)) and np.all(tns[sel] == stamp_ns(m))
     counts = np.bincount(np.array(d["label"]), minlength=3)
-    assert counts[0] > 0.9 * counts.sum() and counts[1] > 0 and counts[2] > 0 and counts.size == 3
+    assert counts[0] > 0.5 * counts.sum() and counts[1] > 0 and counts[2] > 0 and counts.size == 3
     meta = json.loads((side / "meta.json").read_text())
     assert meta["seed"] == 7 and meta["world"] == "hallway_loop" and (side / "world.toml").exists()
     assert (folder_path / "sim" / "radar_labels.parquet").exists()
