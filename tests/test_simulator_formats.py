@@ -78,7 +78,7 @@ def test_pointcloud2_layouts(bag: dict[str, list[tuple[int, Any, str]]]) -> None
     counts = np.array([m.width for m in radar])
     # sparse like the TI chain's output (CFAR + peak grouping: about one point per strong feature), never empty
     # for long, and never above the driver's cap
-    assert 5 <= np.median(counts) and counts.max() <= 200 and np.mean(counts > 0) > 0.9
+    assert 20 <= np.median(counts) and counts.max() <= 200 and np.mean(counts > 0) > 0.9  # tens to ~200
     lidar = [m for _, m, _ in bag["/os1_cloud_node/points"]]
     assert {(m.height, m.width) for m in lidar} == {(16, 256)}
     a = cloud_array(lidar[3])

@@ -41,7 +41,7 @@ def _add(power: np.ndarray, r: float, d: float, snr_db: float) -> None:
 
 def test_cfar_detects_isolated_returns_once_and_noise_never() -> None:
     rng = np.random.default_rng(0)
-    p = RadarParams()
+    p = RadarParams(peak_grouping=True)  # the out-of-box chain
     power = _grid(rng)
     assert not cfar_detect(10 * np.log10(power), p).any()  # 15 dB over 12-channel averaged noise: no false alarms
     _add(power, 30.3, 10.2, 40.0)
@@ -49,11 +49,18 @@ def test_cfar_detects_isolated_returns_once_and_noise_never() -> None:
     _add(power, 80.0, 20.0, 12.0)  # below the threshold
     det = cfar_detect(10 * np.log10(power), p)
     assert sorted(zip(*np.nonzero(det), strict=True)) == [(30, 10), (60, 40)]  # one cell each, at the peak
+    # without grouping (the default, as the TI ROS driver's 3D configuration) the main lobe's neighbours of
+    # the strong returns are reported too, all within +-2 bins of the peaks
+    loose = np.nonzero(cfar_detect(10 * np.log10(power), RadarParams()))
+    cells = np.column_stack(loose)
+    assert len(cells) > 2 and {(30, 10), (60, 40)} <= set(map(tuple, cells.tolist()))
+    near = np.minimum(np.abs(cells - [30, 10]).max(1), np.abs(cells - [60, 40]).max(1))
+    assert np.all(near <= 2)
 
 
 def test_cfar_masks_a_weak_return_beside_a_strong_one_and_in_dense_clutter() -> None:
     rng = np.random.default_rng(1)
-    p = RadarParams()
+    p = RadarParams(peak_grouping=True)
     power = _grid(rng)
     _add(power, 30.0, 10.0, 45.0)
     _add(power, 31.0, 11.0, 30.0)  # a neighbouring cell: peak grouping keeps only the strong one

@@ -158,6 +158,7 @@ def simulated(factory: Any, world: str = "hallway_loop", duration: float = 4.0, 
 
     key = (world, duration, seed, fmt)
     if key not in _CACHE:
-        out = factory.mktemp(f"sim-{world}-{fmt}") / f"{world}"
+        name = Path(world).stem
+        out = factory.mktemp(f"sim-{name}-{fmt}") / name
         _CACHE[key] = simulate_to(world, out, duration=duration, seed=seed, fmt=fmt)
     return _CACHE[key]
