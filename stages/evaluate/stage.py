@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import time
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any, Literal
 
@@ -88,6 +89,20 @@ class EvaluateParams(StageParams):
     uncertainty_every: int = Field(10, ge=1, description="record the uncertainty quartiles every N scans")
     # -- RMap
     fscore_threshold: float = Field(0.15, gt=0, description="F-score distance d (m), RMap: one voxel")
+    blas_threads: int = Field(1, ge=0, description="BLAS threads while evaluating (0: leave the library's "
+                              "default); the matrices are small, and a multi-threaded BLAS on a busy machine "
+                              "spins more than it computes")
+
+
+def blas_threads(n: int) -> AbstractContextManager[Any]:
+    """Limit the BLAS thread pools to ``n`` threads (``threadpoolctl``) for the duration; 0 leaves them."""
+    if n <= 0:
+        return nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - a dependency, but never fatal
+        return nullcontext()
+    return threadpool_limits(n, user_api="blas")
 
 
 #: parameters of the slam stage this stage falls back to (name in slam's manifest -> default)
@@ -118,6 +133,10 @@ class EvaluateStage(Stage):
         return tuple(n for n in self.inputs if n in need)
 
     def run(self, ctx: StageContext) -> None:
+        with blas_threads(ctx.params.blas_threads):
+            self._run(ctx)
+
+    def _run(self, ctx: StageContext) -> None:
         p: EvaluateParams = ctx.params
         t_start = time.perf_counter()
         self.records: list[dict[str, Any]] = []

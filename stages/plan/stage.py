@@ -11,6 +11,7 @@ refined paths ``greedy`` / ``uncertainty`` and the A* guesses ``astar_<strategy>
 from __future__ import annotations
 
 import time
+from contextlib import AbstractContextManager, nullcontext
 from typing import Any, Literal
 
 import numpy as np
@@ -49,6 +50,8 @@ class PlanParams(StageParams):
     domain_margin: float = Field(0.5, ge=0, description="distance kept from the Hilbert domain's edge (m): the "
                                  "domain bound Omega of eq. 34")
     max_iter: int = Field(300, ge=1, description="SLSQP iteration limit")
+    blas_threads: int = Field(1, ge=0, description="BLAS threads while planning (0: leave the library's default); "
+                              "the matrices are small, and a multi-threaded BLAS on a busy machine spins")
 
     @model_validator(mode="after")
     def _check(self) -> PlanParams:
@@ -59,6 +62,17 @@ class PlanParams(StageParams):
         if self.waypoint_spacing > self.d_max:
             raise ValueError(f"waypoint_spacing {self.waypoint_spacing} exceeds d_max {self.d_max}")
         return self
+
+
+def blas_threads(n: int) -> AbstractContextManager[Any]:
+    """Limit the BLAS thread pools to ``n`` threads (``threadpoolctl``) for the duration; 0 leaves them."""
+    if n <= 0:
+        return nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - a dependency, but never fatal
+        return nullcontext()
+    return threadpool_limits(n, user_api="blas")
 
 
 def field_from_posterior(table: Any) -> MapField:
@@ -107,6 +121,10 @@ class PlanStage(Stage):
     outputs = ("paths.parquet",)
 
     def run(self, ctx: StageContext) -> None:
+        with blas_threads(ctx.params.blas_threads):
+            self._run(ctx)
+
+    def _run(self, ctx: StageContext) -> None:
         p: PlanParams = ctx.params
         field = field_from_posterior(read_artifact(ctx.input("slam", "map_posterior.parquet"), "map_posterior"))
         lo = field.lo + p.domain_margin
