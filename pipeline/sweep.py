@@ -23,6 +23,8 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
+import typer
+from typer.exceptions import TyperException
 
 from pipeline.config import Overrides, Workflow, check_param_names, load_workflow, merge_overrides
 from pipeline.errors import UserError
@@ -326,54 +328,65 @@ def summary_rows(records: Sequence[Mapping[str, Any]], metric: str = "auc") -> l
 
 
 # -- command line ----------------------------------------------------------------------------------------------
-def main() -> None:
-    """``python -m pipeline.sweep WORKFLOW --seq SEQ``: run a sweep and draw its figure."""
-    import sys
-
-    import typer
+def command(
+    workflow: Annotated[str, typer.Argument(help="a sweep workflow in workflows/ (e.g. sweep_fig7) or a .toml")],
+    seq: Annotated[str, typer.Option("--seq", "-s", help="sequence name, list (a,b) or glob")] = "demo",
+    set_: Annotated[list[str] | None, typer.Option("--set", help="extra STAGE.PARAM=VALUE for every point")] = None,
+    runs_dir: Annotated[Path | None, typer.Option("--runs-dir", help="run store (default ./runs)")] = None,
+    executor: Annotated[str | None, typer.Option("--executor", help="local (process pool) or ray; default: in "
+                                                 "this process, one point after another")] = None,
+    workers: Annotated[int | None, typer.Option("--workers", help="parallel points")] = None,
+    force: Annotated[bool, typer.Option("--force", help="rerun the workflow's stages at every point")] = False,
+) -> None:
+    """Run every point of a sweep workflow, gather the metrics and draw the workflow's figure."""
     from rich.console import Console
 
+    from pipeline.config import parse_set
+    from pipeline.executors import make_executor
     from pipeline.paths import default_runs_dir
+    from pipeline.registry import load_stages
+    from pipeline.sequences import expand_sequences, load_registry
 
     console = Console(stderr=True)
+    overrides = parse_set(set_ or [], load_stages())
+    seqs = expand_sequences(seq, load_registry())
+    ex = make_executor(executor, workers) if executor else None
+    res = run_sweep(workflow, seqs, runs_dir or default_runs_dir(), overrides, ex, console, force=force)
+    failed = [r for r in res.results if not r.ok]
+    console.print(f"sweep folder: {res.root}")
+    if res.metrics is not None:
+        console.print(f"metrics: {res.metrics}")
+    for f in res.figures:
+        console.print(f"figure: {f}")
+    if failed:
+        raise typer.Exit(1 if any(r.error_kind == "bug" for r in failed) else 2)
 
-    def command(
-        workflow: Annotated[str, typer.Argument(help="a sweep workflow in workflows/ (e.g. sweep_fig7) or a .toml")],
-        seq: Annotated[str, typer.Option("--seq", "-s", help="sequence name, list (a,b) or glob")] = "demo",
-        set_: Annotated[list[str] | None, typer.Option("--set", help="extra STAGE.PARAM=VALUE for every point")] = None,
-        runs_dir: Annotated[Path | None, typer.Option("--runs-dir", help="run store (default ./runs)")] = None,
-        executor: Annotated[str | None, typer.Option("--executor", help="local (process pool) or ray; "
-                                                     "default: in this process, one point after another")] = None,
-        workers: Annotated[int | None, typer.Option("--workers", help="parallel points")] = None,
-        force: Annotated[bool, typer.Option("--force", help="rerun the workflow's stages at every point")] = False,
-    ) -> None:
-        from pipeline.config import parse_set
-        from pipeline.executors import make_executor
-        from pipeline.registry import load_stages
-        from pipeline.sequences import expand_sequences, load_registry
 
-        overrides = parse_set(set_ or [], load_stages())
-        seqs = expand_sequences(seq, load_registry())
-        ex = make_executor(executor, workers) if executor else None
-        res = run_sweep(workflow, seqs, runs_dir or default_runs_dir(), overrides, ex, console, force=force)
-        failed = [r for r in res.results if not r.ok]
-        console.print(f"sweep folder: {res.root}")
-        if res.metrics is not None:
-            console.print(f"metrics: {res.metrics}")
-        for f in res.figures:
-            console.print(f"figure: {f}")
-        if failed:
-            raise typer.Exit(1 if any(r.error_kind == "bug" for r in failed) else 2)
+def main() -> None:
+    """``python -m pipeline.sweep WORKFLOW --seq SEQ`` with the CLI's exit codes (2 on a user error)."""
+    import sys
+
+    from rich.console import Console
+    from rich.markup import escape
 
     app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
     app.command()(command)
     try:
         app(standalone_mode=False)
     except UserError as exc:
-        console.print(f"[bold red]error:[/] {exc}", soft_wrap=True, highlight=False)
+        Console(stderr=True).print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True, highlight=False)
         sys.exit(2)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
+    except typer.Abort:
+        sys.exit(130)
+    except TyperException as exc:  # usage errors (unknown option, missing argument)
+        show = getattr(exc, "show", None)
+        if callable(show):
+            show()
+        else:
+            Console(stderr=True).print(f"[bold red]error:[/] {escape(str(exc))}")
+        sys.exit(int(getattr(exc, "exit_code", 2) or 2))
 
 
 if __name__ == "__main__":

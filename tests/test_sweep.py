@@ -148,3 +148,20 @@ def test_sweep_rejects_unknown_parameters(tmp_path: Path) -> None:
     seq = SequenceInfo(name="toyseq", kind="source", source=Path("/nonexistent"))
     with pytest.raises(UserError, match=r"did you mean 'evaluate\.seed'"):
         run_sweep(str(wf), [seq], tmp_path / "runs", registry="tests.test_sweep:toy_registry")
+
+
+def test_sweep_command_line_exit_codes() -> None:
+    import os
+    import subprocess
+    import sys
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "pipeline.sweep", *args], capture_output=True, text=True,
+                              cwd=ROOT, env={**os.environ, "COLUMNS": "200"}, timeout=120)
+
+    assert run("--help").returncode == 0
+    r = run("default", "--seq", "demo")
+    assert r.returncode == 2 and "has no [sweep] table" in r.stderr and "Traceback" not in r.stderr
+    r = run("sweep_fig7", "--seq", "dmeo")
+    assert r.returncode == 2 and "did you mean 'demo'" in r.stderr
+    assert run("--bogus").returncode == 2
