@@ -21,7 +21,7 @@ from stages.evaluate.occupancy import (
     roc_auc,
     split_scans_by_block,
 )
-from stages.evaluate.stage import STAGE, EvaluateParams
+from stages.evaluate.stage import STAGE, EvaluateParams, Evaluation
 from stages.evaluate.trajectory import evaluate_trajectory, interpolate_pose2d, umeyama_se2, wrap_angle
 from tests.test_evaluate_fixtures import make_context, room_segments, write_stage, write_synthetic_run
 
@@ -198,15 +198,15 @@ def _point_to_segments(p: np.ndarray, segs: np.ndarray) -> np.ndarray:
 
 def test_radar_points_land_on_the_walls_with_ground_truth(tmp_path: Path) -> None:
     """Independent check of calibration + pose interpolation: ray-cast endpoints fall on the world's walls."""
-    from stages.evaluate.stage import EvaluateStage
+
     from stages.evaluate.world import gt_interpolator, radar_beams_world
 
     runs = tmp_path / "runs"
     write_synthetic_run(runs, duration=10.0, with_maps=False)
     ctx = make_context(runs, "synth", "evaluate", EvaluateParams(), ["ingest"], tmp_path / "o")
-    gt = EvaluateStage()._groundtruth(ctx)
+    gt = Evaluation()._groundtruth(ctx)
     radar = read_artifact(runs / "synth" / "ingest" / "radar.parquet", "radar")
-    beams = radar_beams_world(radar, EvaluateStage._calibration(ctx), gt_interpolator(gt, 10**9), 50.0)
+    beams = radar_beams_world(radar, Evaluation._calibration(ctx), gt_interpolator(gt, 10**9), 50.0)
     dist = _point_to_segments(beams.end, room_segments())
     assert len(dist) > 100 and np.percentile(dist, 99) < 0.15
 
@@ -285,7 +285,7 @@ def test_manifest_fallbacks_read_the_slam_parameters(tmp_path: Path) -> None:
     d["params"] = {"max_range": 3.0}
     man.write_text(json.dumps(d))
     ctx = make_context(runs, "synth", "evaluate", EvaluateParams(), ["slam"], tmp_path / "o")
-    assert STAGE._slam_params(ctx)["max_range"] == 3.0
+    assert Evaluation._slam_params(ctx)["max_range"] == 3.0
 
 
 def test_each_fit_has_its_own_random_stream() -> None:

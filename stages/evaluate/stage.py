@@ -134,14 +134,20 @@ class EvaluateStage(Stage):
 
     def run(self, ctx: StageContext) -> None:
         with blas_threads(ctx.params.blas_threads):
-            self._run(ctx)
+            Evaluation().run(ctx)
 
-    def _run(self, ctx: StageContext) -> None:
-        p: EvaluateParams = ctx.params
-        t_start = time.perf_counter()
+
+class Evaluation:
+    """One evaluation: the metric records, figures and notes collected while the sections run."""
+
+    def __init__(self) -> None:
         self.records: list[dict[str, Any]] = []
         self.figures: dict[str, str] = {}
         self.notes: dict[str, list[str]] = {}
+
+    def run(self, ctx: StageContext) -> None:
+        p: EvaluateParams = ctx.params
+        t_start = time.perf_counter()
         gt = self._groundtruth(ctx)
         if "trajectory" in p.sections:
             self._trajectories(ctx, gt)
