@@ -9,14 +9,14 @@ the held-out map comparison of RMap Table III on a simulated sequence.
 - full mode: `complete` on the held-out sequence(s) with the shipped checkpoint, input radar map and
   completed map each scored against the lidar map (``stages.evaluate.map_metrics``).
 
-``python -m benchmarks.bench_complete --heldout sim_hallway_loop`` prints only the held-out comparison.
+``python -m benchmarks.bench_complete --heldout sim_hallway_loop [--runs-dir DIR] [--cached-only]`` prints
+only the held-out comparison (as a markdown table).
 Needs torch (the ``learn`` extra); without it the benchmark returns nothing.
 """
 
 from __future__ import annotations
 
 import importlib.util
-import sys
 import time
 from functools import partial
 from pathlib import Path
@@ -96,9 +96,38 @@ def _inference_results(quick: bool) -> list[Result]:
     return out
 
 
+def _run_complete_on_existing(store: Any, params: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    """The `complete` stage on a run store's finished `patches` and `voxel` folders, without the runner."""
+    from rich.console import Console
+
+    from pipeline.sequences import get_sequence
+    from pipeline.stage import StageContext
+    from stages.complete.stage import STAGE
+
+    for stage in ("patches", "voxel"):
+        if store.read_manifest(stage) is None:
+            raise RuntimeError(f"{store.stage_dir(stage)}: no finished run")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ctx = StageContext(stage="complete", seq=get_sequence(store.seq), params=STAGE.Params(**params), out_dir=out_dir,
+                       input_dirs={s: store.stage_dir(s) for s in ("patches", "voxel")},
+                       console=Console(stderr=True))
+    try:
+        STAGE.run(ctx)
+    finally:
+        ctx.close()
+    return ctx.stats
+
+
 def heldout_comparison(seqs: tuple[str, ...] = HELDOUT, runs_dir: Path | None = None,
-                       overrides: dict[str, dict[str, Any]] | None = None) -> list[dict[str, Any]]:
-    """Run `complete` on ``seqs`` and score the input radar map and the completed map against the lidar map."""
+                       overrides: dict[str, dict[str, Any]] | None = None,
+                       cached_only: bool = False) -> list[dict[str, Any]]:
+    """Run `complete` on ``seqs`` and score the input radar map and the completed map against the lidar map.
+
+    ``cached_only``: use the run store's finished `voxel` and `patches` results as they are (the stage runs
+    on them directly and writes into ``<seq>/complete_heldout/``) instead of bringing them up to date.
+    """
+    import json
+
     from rich.console import Console
 
     from pipeline.config import load_workflow
@@ -106,6 +135,7 @@ def heldout_comparison(seqs: tuple[str, ...] = HELDOUT, runs_dir: Path | None = 
     from pipeline.registry import load_stages
     from pipeline.runner import Runner
     from pipeline.sequences import get_sequence
+    from pipeline.store import RunStore
     from schemas import read_artifact
     from stages.evaluate.map_metrics import map_metrics
 
@@ -114,17 +144,22 @@ def heldout_comparison(seqs: tuple[str, ...] = HELDOUT, runs_dir: Path | None = 
         return np.stack([t.column(c).to_numpy().astype(np.float64) for c in "xyz"], axis=1)
 
     rows = []
+    runs = runs_dir or default_runs_dir()
     for name in seqs:
-        runner = Runner(get_sequence(name), runs_dir or default_runs_dir(), load_stages(), load_workflow("default"),
-                        overrides or {}, Console(stderr=True))
-        runner.run(["complete"])
-        store = runner.store
+        if cached_only:
+            store = RunStore(Path(runs), name)
+            out_dir = store.seq_dir / "complete_heldout"
+            stats = _run_complete_on_existing(store, (overrides or {}).get("complete", {}), out_dir)
+        else:
+            runner = Runner(get_sequence(name), runs, load_stages(), load_workflow("default"), overrides or {},
+                            Console(stderr=True))
+            runner.run(["complete"])
+            store = runner.store
+            out_dir = store.stage_dir("complete")
+            stats = json.loads((out_dir / "manifest.json").read_text()).get("stats", {})
         lidar = cloud(store.stage_dir("voxel") / "lidar_map.parquet", "lidar_map")
         radar = cloud(store.stage_dir("voxel") / "radar_map.parquet", "radar_map")
-        done = cloud(store.stage_dir("complete") / "completed_map.parquet", "completed_map")
-        import json
-
-        stats = json.loads((store.stage_dir("complete") / "manifest.json").read_text()).get("stats", {})
+        done = cloud(out_dir / "completed_map.parquet", "completed_map")
         for method, pred in (("input radar map", radar), ("completed map", done)):
             rows.append({"seq": name, "method": method, **map_metrics(pred, lidar),
                          "seconds_per_patch": stats.get("seconds_per_patch") if method == "completed map" else None,
@@ -154,9 +189,9 @@ def run(quick: bool = False) -> list[Result]:
     return results
 
 
-def _print_heldout(seqs: tuple[str, ...]) -> None:
+def _print_heldout(seqs: tuple[str, ...], runs_dir: Path | None, cached_only: bool) -> None:
     t0 = time.perf_counter()
-    rows = heldout_comparison(seqs)
+    rows = heldout_comparison(seqs, runs_dir, cached_only=cached_only)
     cols = ("cd_l1", "cd_l2", "fscore_0.15", "ddist_p50", "ddist_p75", "ddist_p90", "ddist_p95", "cd_x", "cd_y",
             "cd_z", "n_pred", "n_gt")
     print("| seq | map | " + " | ".join(cols) + " |")
@@ -168,9 +203,16 @@ def _print_heldout(seqs: tuple[str, ...]) -> None:
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    if args and args[0] == "--heldout":
-        _print_heldout(tuple(args[1].split(",")) if len(args) > 1 else HELDOUT)
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--heldout", help="comma-separated held-out sequences: print only their map comparison")
+    ap.add_argument("--runs-dir", type=Path, default=None)
+    ap.add_argument("--cached-only", action="store_true", help="use the finished voxel/patches runs as they are")
+    ap.add_argument("--quick", action="store_true")
+    args = ap.parse_args()
+    if args.heldout:
+        _print_heldout(tuple(args.heldout.split(",")), args.runs_dir, args.cached_only)
     else:
-        for r in run(quick="--quick" in args):
+        for r in run(quick=args.quick):
             print(r)

@@ -312,6 +312,8 @@ def train(
     decay_every: Annotated[int, typer.Option("--decay-every", help="epochs between lr decays (paper: 20)")] = 20,
     loss: Annotated[str, typer.Option("--loss", help="Chamfer variant per level: l2 (eq. 1) or l1")] = "l2",
     augment: Annotated[bool, typer.Option("--augment/--no-augment", help="random yaw and mirror")] = True,
+    crop: Annotated[bool, typer.Option("--crop-target/--no-crop-target", help="cut lidar targets to the ball "
+                                       "their radar patch spans (for maps with L/R well below 4)")] = True,
     seed: Annotated[int, typer.Option("--seed", help="seed of weights, batches, resampling, augmentation")] = 0,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda or auto")] = "cpu",
     threads: Annotated[int | None, typer.Option("--threads", help="torch CPU threads")] = None,
@@ -320,7 +322,11 @@ def train(
     out_path: Annotated[Path | None, typer.Option("--out", help="checkpoint (.safetensors or .pt); default "
                                                   "<runs>/models/rmap_<size>.safetensors")] = None,
     half: Annotated[bool, typer.Option("--half", help="store the weights as float16")] = False,
+    cached_only: Annotated[bool, typer.Option("--cached-only", help="train on the finished patches runs as they "
+                                              "are, without bringing them up to date")] = False,
     set_: SetOpt = None,
+    train_set: Annotated[list[str] | None, typer.Option("--train-set", help="override for the training sequences "
+                                                        "only, e.g. patches.a=16 (the paper's a_train)")] = None,
     runs_dir: RunsOpt = None,
     workflow: WorkflowOpt = "default",
 ) -> None:
@@ -331,11 +337,13 @@ def train(
     runs = runs_dir or default_runs_dir()
     req = TrainRequest(
         seqs=seqs, test_seqs=test_seqs, runs_dir=runs, registry=registry, workflow=load_workflow(workflow),
-        overrides=parse_set(set_ or [], registry), out=out_path or runs / "models" / f"rmap_{size}.safetensors",
+        overrides=parse_set(set_ or [], registry), train_overrides=parse_set(train_set or [], registry),
+        out=out_path or runs / "models" / f"rmap_{size}.safetensors",
         train_kwargs=dict(size=size, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
                           lr_decay=lr_decay, decay_every=decay_every, loss=loss, augment=augment, seed=seed,
+                          crop_target=crop,
                           device=device, time_limit_s=time_limit),
-        threads=threads, half=half,
+        threads=threads, half=half, cached_only=cached_only,
     )
     summary = run_training(req, console)
     for key in ("checkpoint", "curve", "history"):

@@ -50,6 +50,22 @@ def test_resample_sizes() -> None:
     assert len(up) == 25 and {tuple(p) for p in up} == {tuple(p) for p in pts}
 
 
+def test_crop_target() -> None:
+    from stages.complete.data import Patch, crop_target
+
+    rng = np.random.default_rng(2)
+    seed = np.array([1.0, 2.0, 0.0])
+    radar = seed + rng.normal(size=(200, 3))
+    lidar = seed + rng.normal(size=(1000, 3)) * 3
+    out = crop_target(Patch("s", 0, seed, radar, lidar), min_points=10)
+    r = np.linalg.norm(radar - seed, axis=1).max()
+    d = np.linalg.norm(lidar - seed, axis=1)
+    np.testing.assert_array_equal(out.lidar, lidar[d <= r])
+    far = Patch("s", 1, seed, seed + rng.normal(size=(5, 3)) * 0.01, lidar)  # tiny radar ball: nearest 10 kept
+    got = crop_target(far, min_points=10).lidar
+    assert len(got) == 10 and np.linalg.norm(got - seed, axis=1).max() <= np.sort(d)[9]
+
+
 def test_voxel_downsample_matches_loop() -> None:
     rng = np.random.default_rng(1)
     pts = rng.uniform(-1, 1, (3000, 3))

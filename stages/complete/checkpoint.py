@@ -66,6 +66,7 @@ def save_checkpoint(path: str | Path, model: UpPoinTr, meta: CheckpointMeta, hal
         torch.save({"state_dict": state, "meta_json": json.dumps(meta.to_strings())}, tmp)
     else:
         raise UserError(f"{path}: checkpoint must end in .safetensors or .pt")
+    tmp.chmod(0o644)
     tmp.replace(path)
     return path
 

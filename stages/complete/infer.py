@@ -28,10 +28,23 @@ def resolve_device(name: str) -> torch.device:
 
 @dataclass
 class Completion:
-    """Predicted patches in world coordinates and the time the network took."""
+    """Predicted patches in world coordinates and the time the network took per batch."""
 
     points: list[F64]
-    model_seconds: float
+    batch_seconds: list[float]
+    batch_sizes: list[int]
+
+    @property
+    def model_seconds(self) -> float:
+        return float(sum(self.batch_seconds))
+
+    @property
+    def seconds_per_patch(self) -> float:
+        """Network seconds per patch, leaving out the first (warm-up) batch when there are more."""
+        s, n = self.batch_seconds, self.batch_sizes
+        if len(s) > 1:
+            s, n = s[1:], n[1:]
+        return float(sum(s) / sum(n)) if n and sum(n) else 0.0
 
 
 def prepare_inputs(patches: Sequence[Patch], n_input: int, scale: float, rng: np.random.Generator) -> F64:
@@ -57,17 +70,19 @@ def complete_patches(
     x = prepare_inputs(patches, meta.config.n_input, meta.norm_scale, rng)
     model.eval()
     out: list[F64] = []
-    seconds = 0.0
+    seconds: list[float] = []
+    sizes: list[int] = []
     for s in range(0, len(patches), batch_size):
         xb = torch.from_numpy(x[s : s + batch_size]).to(device=device, dtype=torch.float32)
         t0 = time.perf_counter()
         pred = model(xb)[-1]
         if device.type == "cuda":
             torch.cuda.synchronize(device)
-        seconds += time.perf_counter() - t0
+        seconds.append(time.perf_counter() - t0)
+        sizes.append(len(xb))
         pred_np = pred.cpu().numpy().astype(np.float64)
         for j, p in enumerate(patches[s : s + batch_size]):
             out.append(denormalize(pred_np[j], p.seed, meta.norm_scale))
         if advance is not None:
             advance(len(xb))
-    return Completion(out, seconds)
+    return Completion(out, seconds, sizes)

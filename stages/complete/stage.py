@@ -129,7 +129,7 @@ class CompleteStage(Stage):
             "model_size": meta.train.get("config", {}).get("size", ""),
             "norm_scale_m": meta.norm_scale,
             "model_seconds": result.model_seconds,
-            "seconds_per_patch": result.model_seconds / len(patches) if patches else 0.0,
+            "seconds_per_patch": result.seconds_per_patch,
             "wall_seconds": wall,
         })
 

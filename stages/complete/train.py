@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from stages.complete.checkpoint import CheckpointMeta
-from stages.complete.data import Patch, normalize, patch_scale, resample
+from stages.complete.data import Patch, crop_target, normalize, patch_scale, resample
 from stages.complete.infer import prepare_inputs
 from stages.complete.model import SIZES, ModelConfig, UpPoinTr, count_parameters
 from stages.complete.ops import chamfer_l1, chamfer_l2, fps, gather_points
@@ -44,6 +44,7 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     norm_scale: float | None = None
+    crop_target: bool = True
     time_limit_s: float | None = None
 
     def model_config(self) -> ModelConfig:
@@ -138,6 +139,9 @@ def train(
     mcfg = cfg.model_config()
     rng = np.random.default_rng(cfg.seed)
     torch.manual_seed(cfg.seed)
+    if cfg.crop_target:
+        train_patches = [crop_target(p) for p in train_patches]
+        val_patches = [crop_target(p) for p in val_patches]
     scale = cfg.norm_scale or patch_scale(train_patches)
     t_prep = time.perf_counter()
     tr = build_tensors(train_patches, mcfg, scale, rng)

@@ -1,8 +1,8 @@
 """``pipeline train``: build the training set from `patches` runs, train, write checkpoint and curve.
 
-Kept apart from ``pipeline/cli.py`` so that the CLI imports torch only when this command runs. Training
-sequences get the ``--set`` overrides (e.g. ``patches.a=16``, the paper's a_train); held-out sequences
-use the workflow's parameters (a = 4, the paper's a_test).
+Kept apart from ``pipeline/cli.py`` so that the CLI imports torch only when this command runs. ``--set``
+overrides apply to every sequence; ``--train-set`` overrides only to the training sequences (e.g.
+``patches.a=16``, the paper's a_train, while held-out sequences keep the workflow's a = 4, its a_test).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from pipeline.config import Overrides, Workflow
+from pipeline.config import Overrides, Workflow, merge_overrides
 from pipeline.errors import UserError
 from pipeline.paths import PROJECT_ROOT
 from pipeline.sequences import SequenceInfo, expand_sequences, load_registry
@@ -38,10 +38,13 @@ class TrainRequest:
     registry: dict[str, Stage]
     workflow: Workflow
     overrides: Overrides
+    train_overrides: Overrides
     out: Path
     train_kwargs: dict[str, Any]
     threads: int | None = None
     half: bool = False
+    #: read the finished `patches` runs as they are instead of bringing them up to date first
+    cached_only: bool = False
 
 
 def _git_commit() -> str:
@@ -70,17 +73,30 @@ def split(req: TrainRequest) -> tuple[list[SequenceInfo], list[SequenceInfo]]:
     return train, test
 
 
-def collect(req: TrainRequest, seqs: list[SequenceInfo], overrides: Overrides, console: Console) -> list[Patch]:
-    """Bring the `patches` stage of every sequence up to date and read its patch pairs."""
+def collect(req: TrainRequest, seqs: list[SequenceInfo], overrides: Overrides, console: Console,
+            provenance: dict[str, Any]) -> list[Patch]:
+    """Bring the `patches` stage of every sequence up to date (unless ``cached_only``) and read its patch pairs."""
     from pipeline.runner import Runner
+    from pipeline.store import RunStore
 
     out: list[Patch] = []
     for info in seqs:
-        runner = Runner(info, req.runs_dir, req.registry, req.workflow, overrides, console)
-        runner.run(["patches"])
-        path = runner.store.stage_dir("patches") / "patches.parquet"
-        got = read_patches(path, info.name, need_lidar=True)
-        console.print(f"  {info.name}: {len(got)} patches (a = {getattr(runner.params('patches'), 'a', '?')})")
+        if req.cached_only:
+            store = RunStore(req.runs_dir, info.name)
+            manifest = store.read_manifest("patches")
+            if manifest is None:
+                raise UserError(f"{store.stage_dir('patches')}: no finished patches run; run without --cached-only")
+        else:
+            runner = Runner(info, req.runs_dir, req.registry, req.workflow, overrides, console)
+            runner.run(["patches"])
+            store = runner.store
+            manifest = store.read_manifest("patches") or {}
+        got = read_patches(store.stage_dir("patches") / "patches.parquet", info.name, need_lidar=True)
+        params = manifest.get("params", {})
+        voxel = store.read_manifest("voxel") or {}
+        provenance[info.name] = {"patches_key": manifest.get("key"), "patches_params": params,
+                                 "voxel_params": voxel.get("params", {}), "n_patches": len(got)}
+        console.print(f"  {info.name}: {len(got)} patches (a = {params.get('a', '?')})")
         out.extend(got)
     return out
 
@@ -110,14 +126,18 @@ def run_training(req: TrainRequest, console: Console) -> dict[str, Any]:
     train_names = [s.name for s in train_seqs]
     console.print(f"training sequences: {', '.join(train_names)}; "
                   f"held out: {', '.join(s.name for s in test_seqs) or 'none'}")
-    tr = collect(req, train_seqs, req.overrides, console)
-    te = collect(req, test_seqs, {}, console) if test_seqs else []
+    provenance: dict[str, Any] = {}
+    tr = collect(req, train_seqs, merge_overrides(req.overrides, req.train_overrides), console, provenance)
+    te = collect(req, test_seqs, req.overrides, console, provenance) if test_seqs else []
     if not tr:
         raise UserError("the training sequences produced no patches with radar and lidar points")
     record = {
         "train_seqs": [s.name for s in train_seqs],
         "test_seqs": [s.name for s in test_seqs],
-        "patches_overrides": req.overrides.get("patches", {}),
+        "overrides": req.overrides,
+        "train_overrides": req.train_overrides,
+        "cached_only": req.cached_only,
+        "patches": provenance,
         "command": shlex.join(["pipeline", *sys.argv[1:]]) if sys.argv and "train" in sys.argv else "",
         "git_commit": _git_commit(),
         "threads": torch.get_num_threads(),
