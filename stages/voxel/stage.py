@@ -66,6 +66,11 @@ class VoxelParams(StageParams):
     resolution: float = Field(0.15, gt=0, description="voxel edge length (m)")
     prob_hit: float = Field(0.7, gt=0, lt=1, description="occupancy probability of a hit")
     prob_miss: float = Field(0.4, gt=0, lt=1, description="occupancy probability of a miss")
+    radar_prob_miss: float | None = Field(
+        None, gt=0, lt=1,
+        description="miss probability of the radar model only (default: prob_miss); 0.5 makes the radar map the "
+        "plain accumulation of hits",
+    )
     clamp_min: float = Field(0.12, gt=0, lt=1, description="lower clamping threshold (probability)")
     clamp_max: float = Field(0.97, gt=0, lt=1, description="upper clamping threshold (probability)")
     occupancy_threshold: float = Field(0.5, gt=0, lt=1, description="a voxel is occupied above this probability")
@@ -113,6 +118,8 @@ class VoxelStage(Stage):
         gt_xyz = np.stack([gt.column(c).to_numpy() for c in ("x", "y", "z")], axis=1)
         gt_q = np.stack([gt.column(c).to_numpy() for c in ("qx", "qy", "qz", "qw")], axis=1)
         model = SensorModel(p.prob_hit, p.prob_miss, p.clamp_min, p.clamp_max, p.occupancy_threshold)
+        radar_model = SensorModel(p.prob_hit, p.radar_prob_miss if p.radar_prob_miss is not None else p.prob_miss,
+                                  p.clamp_min, p.clamp_max, p.occupancy_threshold)
         if len(gt_t) == 0:
             if p.trajectory == "groundtruth":
                 raise UserError(f"{ctx.input('ingest', 'groundtruth.parquet')}: no ground-truth poses; build the radar "
@@ -125,7 +132,7 @@ class VoxelStage(Stage):
             return interpolate_se3(t, gt_t, gt_xyz, gt_q)
 
         radar_poses = gt_poses if p.trajectory == "groundtruth" else self._se2_poses(ctx, p, gt_xyz)
-        radar_map = self._radar_map(ctx, p, model, calib["base_from_radar"], radar_poses)
+        radar_map = self._radar_map(ctx, p, radar_model, calib["base_from_radar"], radar_poses)
         lidar_map = self._lidar_map(ctx, p, model, calib, gt_poses)
 
         for kind, vmap in (("radar", radar_map), ("lidar", lidar_map)):
@@ -140,7 +147,8 @@ class VoxelStage(Stage):
             if p.export_bt:
                 if octomap_io.available():
                     keys, values = vmap.voxels(occupied_only=False)
-                    octomap_io.write_bt(ctx.output(f"{kind}_map.bt"), keys, values, p.resolution, model)
+                    octomap_io.write_bt(ctx.output(f"{kind}_map.bt"), keys, values, p.resolution,
+                                        radar_model if kind == "radar" else model)
                 else:
                     ctx.warn("export_bt: the octomap binding is not installed (pip install octomap-python); "
                              "no .bt written")
