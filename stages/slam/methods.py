@@ -46,7 +46,7 @@ class SlamConfig:
     endpoint_tolerance: float = 0.25
     et_ring_points: int = 8
     et_rings: int = 1
-    et_variance: Literal["exact", "taylor"] = "exact"
+    et_variance: Literal["exact", "taylor"] = "taylor"
     likelihood_exponent: float = 1.0
     noise: MotionNoise = field(default_factory=MotionNoise)
     resampling: Resampling = "systematic"
@@ -97,19 +97,20 @@ def step_flops(form: str, n: float, b: float, M: int, w: HilbertWeighting) -> fl
     """Dominant floating-point operations of one particle's weight and update (for the form choice)."""
     ring = w.ring_points * w.rings if (w.endpoint_tolerance > 0 and w.use_variance) else 0
     exact = w.et_variance == "exact"
-    if form == "covariance":  # H^T cov (samples, ring points or Jacobians), S, W, W^T W
+    if form == "covariance":  # symm of samples and ring points (or Jacobians), S, W = R^-1 A, syrk downdate
         q = b * ring if exact else (2 * b if ring else 0)
-        return 2 * (n + q) * M**2 + 4 * n * n * M + n**3 / 3 + 2 * n * M**2
+        return 2 * (n + q) * M**2 + 4 * n * n * M + 7 * n**3 / 3 + n * M**2
     q = b * ring if exact else (2 * b if ring else 0)  # syrk, potrf, trsm of samples and ring points
     return n * M**2 + M**3 / 3 + (n + q) * M**2
 
 
 def choose_form(cfg: SlamConfig, method: str, scans: Sequence[BeamSamples], M: int,
-                info_efficiency: float = 0.4) -> Literal["information", "covariance"]:
+                info_efficiency: float = 0.65) -> Literal["information", "covariance"]:
     """``auto``: the form with the smaller modelled cost at the sequence's mean samples per scan.
 
     The information form's kernels (potrf, trsm on 256 x 256) run at about ``info_efficiency`` of the
-    rate of the covariance form's matrix products (measured by benchmarks/bench_slam.py).
+    rate of the covariance form's (symm, syrk, small products), measured side by side at 50 and 120
+    samples per scan (N_p = 200, M = 256, 2 workers); the crossover is near 80 samples per scan.
     """
     if cfg.map_form != "auto":
         return cfg.map_form

@@ -1,0 +1,121 @@
+"""RICH-SLAM filter speed: seconds per scan at N_p = 200, M = 256, against a numpy matrix product.
+
+Scans come from a synthetic corridor (``stages/slam/synthetic.py``): sparse scans (about 4 beams,
+15 samples: what the filter stage keeps of the simulated single-chip radar) and dense scans (about 25
+beams, 90 samples: the paper's regime, M > N). One RBPF step = propagate, posterior-aware weights
+with the endpoint tolerance (eq. 22-30), Kalman update (eq. 15-19), selection and, when N_eff
+drops, resampling. Timed over ``steps`` scans after warm-up, with the stage's defaults (map form
+chosen by the cost model, 2 worker processes).
+
+GFLOP/s counts the dominant operations of the chosen form (``methods.step_flops``) and is compared
+with ``a @ b`` on two 2048 x 2048 float64 matrices (all BLAS threads) timed in the same run. The
+radar runs at 10 Hz, so real time is 0.1 s per scan. Scaling rows vary N_p and M on the sparse scans;
+a float32 row reports its speed and its log-likelihood difference to float64.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from benchmarks.common import Result, best_time
+from stages.slam import hilbert_map as hm
+from stages.slam.beam_sampling import BeamSamples, sample_beams
+from stages.slam.methods import SlamConfig, choose_form, make_hilbert_maps, step_flops
+from stages.slam.parallel import ParallelHilbertMaps
+from stages.slam.rbpf import RBPF, odometry_increments
+from stages.slam.synthetic import make_run
+
+AREA = "slam"
+FRAME_S = 0.1  # radar frame period (10 Hz)
+
+
+def _matmul_rate(n: int) -> float:
+    rng = np.random.default_rng(0)
+    a, b = rng.standard_normal((n, n)), rng.standard_normal((n, n))
+    t = best_time(lambda: a @ b, repeat=3)
+    return 2 * n**3 / t / 1e9
+
+
+def _scans(beams: int, steps: int) -> tuple[Any, list[BeamSamples]]:
+    run = make_run(steps + 4, np.random.default_rng(1), beams_per_scan=beams, outlier_fraction=0.1)
+    return run, [sample_beams(s, [0.0, 0.0], 1.0, 5.0) for s in run.scans]
+
+
+def _time_filter(cfg: SlamConfig, beams: int, steps: int, M: int) -> dict[str, Any]:
+    """Median seconds per step over ``steps`` scans (after 3 warm-up steps) and the modelled flops."""
+    run, scans = _scans(beams, steps)
+    basis = hm.make_basis([20.0, 16.0], [0.0, 0.0], M)
+    form = choose_form(cfg, "rich_slam", scans, M)
+    maps = make_hilbert_maps(cfg, basis, "rich_slam", cfg.n_particles, form)
+    u = odometry_increments(run.odometry)
+    times = []
+    try:
+        f = RBPF(maps, run.odometry[0], cfg.n_particles, cfg.noise, np.random.default_rng(0))
+        for i, s in enumerate(scans):
+            t0 = time.perf_counter()
+            f.step(u[i], s, first=i == 0)
+            if i >= 3:
+                times.append(time.perf_counter() - t0)
+    finally:
+        if isinstance(maps, ParallelHilbertMaps):
+            maps.close()
+    n = float(np.mean([s.n for s in scans[3:]]))
+    b = float(np.mean([len(s.endpoints) for s in scans[3:]]))
+    flops = cfg.n_particles * step_flops(form, n, b, M, cfg.weighting("rich_slam"))
+    sec = float(np.median(times))
+    return {"sec": sec, "gflops": flops / sec / 1e9, "n": n, "b": b, "form": form}
+
+
+def _float32_accuracy(beams: int, steps: int) -> float:
+    """Largest |log-likelihood difference| float32 vs float64 over a short run, relative to the
+    spread of the particles' log-likelihoods (what decides the weights)."""
+    run, scans = _scans(beams, steps)
+    basis = hm.make_basis([20.0, 16.0], [0.0, 0.0], 256)
+    u = odometry_increments(run.odometry)
+    rng = np.random.default_rng(0)
+    poses = [run.odometry[0] + np.zeros((50, 3))]
+    for i in range(1, len(scans)):
+        poses.append(poses[-1] + u[i] + rng.normal(0, [0.02, 0.02, 0.005], (50, 3)))
+    worst = 0.0
+    maps = {dt: make_hilbert_maps(SlamConfig(dtype=dt, workers=0), basis, "rich_slam", 50, "covariance")
+            for dt in ("float64", "float32")}
+    for p, s in zip(poses, scans, strict=True):
+        ll = {dt: m.log_likelihood(p, s) for dt, m in maps.items()}
+        spread = float(np.std(ll["float64"])) or 1.0
+        worst = max(worst, float(np.max(np.abs(ll["float32"] - ll["float64"]))) / spread)
+        for m in maps.values():
+            m.update(p, s)
+    return worst
+
+
+def run(quick: bool = False) -> list[Result]:
+    ref = _matmul_rate(1024 if quick else 2048)
+    steps = 8 if quick else 30
+    out: list[Result] = [Result(AREA, "numpy matmul float64", ref, "GFLOP/s", note="2048^2 @ 2048^2, reference")]
+    cfg = SlamConfig()
+    for label, beams in (("sparse", 6), ("dense", 30)):
+        r = _time_filter(cfg, beams, steps, 256)
+        note = f"N={r['n']:.0f} samples, B={r['b']:.0f} beams, {r['form']} form, 2 workers"
+        out.append(Result(AREA, f"step Np=200 M=256 {label}", r["sec"], "s/scan", "10 Hz frame (0.1 s)",
+                          FRAME_S / r["sec"], ">= 1 (real time)", note))
+        out.append(Result(AREA, f"GFLOP/s Np=200 M=256 {label}", r["gflops"], "GFLOP/s", "numpy matmul",
+                          r["gflops"] / ref, ">= 0.5", note))
+    r0 = _time_filter(SlamConfig(workers=0), 6, steps, 256)
+    out.append(Result(AREA, "step Np=200 M=256 sparse, in process", r0["sec"], "s/scan", "10 Hz frame (0.1 s)",
+                      FRAME_S / r0["sec"], "", f"{r0['form']} form, all BLAS threads, no workers"))
+    r32 = _time_filter(SlamConfig(dtype="float32"), 6, steps, 256)
+    err = _float32_accuracy(6, 12 if quick else 40)
+    out.append(Result(AREA, "step Np=200 M=256 sparse float32", r32["sec"], "s/scan", "10 Hz frame (0.1 s)",
+                      FRAME_S / r32["sec"], "", f"max |dlog-lik| / particle spread vs float64: {err:.2g}"))
+    for Np in ((50, 400) if quick else (50, 100, 400)):
+        r = _time_filter(SlamConfig(n_particles=Np), 6, steps, 256)
+        out.append(Result(AREA, f"scaling Np={Np} M=256 sparse", r["sec"], "s/scan", "10 Hz frame (0.1 s)",
+                          FRAME_S / r["sec"], "", f"{r['gflops']:.1f} GFLOP/s, {r['form']}"))
+    for M in ((64, 400) if quick else (64, 144, 400, 576)):
+        r = _time_filter(cfg, 6, steps, M)
+        out.append(Result(AREA, f"scaling Np=200 M={M} sparse", r["sec"], "s/scan", "10 Hz frame (0.1 s)",
+                          FRAME_S / r["sec"], "", f"{r['gflops']:.1f} GFLOP/s, {r['form']}"))
+    return out
