@@ -307,3 +307,23 @@ def test_each_fit_has_its_own_random_stream() -> None:
         assert pick[(r.method, r.features)] == r.auc
     other_seed = auc_suite(train, test, gp, base, [16], ["rff"], seed=4)
     assert other_seed[0].auc != pick[("rff", 16)]
+
+
+@pytest.mark.parametrize("headline, counts, methods", [(False, [16], ["hilbert_gp", "rff", "grid"]),
+                                                        (True, [], ["hilbert_gp"])])
+def test_sweep_configurations_of_the_mapping_section(tmp_path: Path, headline: bool, counts: list[int],
+                                                     methods: list[str]) -> None:
+    """The two sweep workflows' settings: per-count rows only (Fig. 6) or the headline map only (Fig. 7)."""
+    runs = tmp_path / "runs"
+    write_synthetic_run(runs, duration=10.0, with_maps=False)
+    p = EvaluateParams(sections=["mapping"], headline=headline, feature_counts=counts, methods=methods)  # type: ignore[arg-type]
+    out = tmp_path / "out"
+    ctx = make_context(runs, "synth", "evaluate", p, list(STAGE.input_stages(p)), out)
+    STAGE.run(ctx)
+    ctx.close()
+    got = {(r["method"], r["metric"]) for r in read_artifact(out / "metrics.parquet", "metrics").to_pylist()}
+    auc = {m for m, k in got if k == "auc"}
+    if headline:
+        assert auc == {"hilbert_gp"} and (out / "gt_map_grid.parquet").exists()
+    else:
+        assert auc == {"hilbert_gp@16", "rff@16", "grid"} and not (out / "gt_map_grid.parquet").exists()
