@@ -12,7 +12,7 @@ import importlib.util
 import inspect
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -168,3 +168,17 @@ class StageContext:
                 prog.advance(task, n)
 
             yield advance
+
+
+def blas_threads(n: int) -> AbstractContextManager[Any]:
+    """Limit the BLAS thread pools to ``n`` threads (``threadpoolctl``) for the duration; 0 leaves them.
+
+    Small dense problems (planning, GP fits) run faster single-threaded, most of all on a shared machine.
+    """
+    if n <= 0:
+        return nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - a dependency, but never fatal
+        return nullcontext()
+    return threadpool_limits(n, user_api="blas")

@@ -68,3 +68,26 @@ def test_likelihood_field_prefers_the_pose_that_built_the_map() -> None:
     empty = likelihood_field_log_likelihood(np.zeros((4, *spec.shape), np.float32), spec,
                                             np.zeros((4, 3, 2)), GridModel())
     assert np.ptp(empty) == 0
+
+
+def test_likelihood_profiles_prefer_the_true_pose() -> None:
+    """The weights peak near the true pose and fall off: the grid on every axis, the Hilbert GP in translation.
+
+    (The Hilbert-GP yaw profile is flat and, in turns, tilted towards unexplored space: README, "What the map
+    constrains"; not asserted here.)
+    """
+    from stages.slam.likelihood_profile import offset_poses, profiles, synthetic_case
+    from stages.slam.methods import SlamConfig
+
+    poses, offs = offset_poses(np.array([1.0, 2.0, np.pi / 2]), "forward")
+    i = int(np.argmin(np.abs(offs - 0.5)))
+    np.testing.assert_allclose(poses[i], [1.0, 2.5, np.pi / 2], atol=1e-12)  # forward = +y when facing +y
+    gt, scans = synthetic_case(n_scans=120)
+    out = profiles(gt, scans, [80, 110], SlamConfig(workers=0), padding=3.0)
+    assert {(p.model, p.axis) for p in out} == {(m, a) for m in ("hilbert_gp (variance, ET)",
+                                                                  "hilbert_gp (mean only)", "fastslam_grid")
+                                                 for a in ("forward", "lateral", "yaw")}
+    for p in out:
+        if p.model == "fastslam_grid" or p.axis != "yaw":
+            assert abs(p.peak) <= (2.0 if p.axis == "yaw" else 0.3), (p.model, p.axis, p.peak)
+            assert p.drop_at(5.0 if p.axis == "yaw" else 0.5) > 0.1, (p.model, p.axis)

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import time
-from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any, Literal
 
@@ -29,7 +28,7 @@ import numpy.typing as npt
 from pydantic import Field
 
 from pipeline.errors import UserError
-from pipeline.stage import Stage, StageContext, StageParams
+from pipeline.stage import Stage, StageContext, StageParams, blas_threads
 from schemas import read_artifact, write_artifact
 from stages.evaluate import figures, tables
 from stages.evaluate.trajectory import evaluate_trajectory, path_length, quat_to_yaw
@@ -92,17 +91,6 @@ class EvaluateParams(StageParams):
     blas_threads: int = Field(1, ge=0, description="BLAS threads while evaluating (0: leave the library's "
                               "default); the matrices are small, and a multi-threaded BLAS on a busy machine "
                               "spins more than it computes")
-
-
-def blas_threads(n: int) -> AbstractContextManager[Any]:
-    """Limit the BLAS thread pools to ``n`` threads (``threadpoolctl``) for the duration; 0 leaves them."""
-    if n <= 0:
-        return nullcontext()
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - a dependency, but never fatal
-        return nullcontext()
-    return threadpool_limits(n, user_api="blas")
 
 
 #: parameters of the slam stage this stage falls back to (name in slam's manifest -> default)

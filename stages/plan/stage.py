@@ -11,7 +11,6 @@ refined paths ``greedy`` / ``uncertainty`` and the A* guesses ``astar_<strategy>
 from __future__ import annotations
 
 import time
-from contextlib import AbstractContextManager, nullcontext
 from typing import Any, Literal
 
 import numpy as np
@@ -19,7 +18,7 @@ import numpy.typing as npt
 from pydantic import Field, model_validator
 
 from pipeline.errors import UserError
-from pipeline.stage import Stage, StageContext, StageParams
+from pipeline.stage import Stage, StageContext, StageParams, blas_threads
 from schemas import read_artifact, write_artifact
 from stages.plan.astar import astar
 from stages.plan.field import MapField, strategy_cost
@@ -62,17 +61,6 @@ class PlanParams(StageParams):
         if self.waypoint_spacing > self.d_max:
             raise ValueError(f"waypoint_spacing {self.waypoint_spacing} exceeds d_max {self.d_max}")
         return self
-
-
-def blas_threads(n: int) -> AbstractContextManager[Any]:
-    """Limit the BLAS thread pools to ``n`` threads (``threadpoolctl``) for the duration; 0 leaves them."""
-    if n <= 0:
-        return nullcontext()
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - a dependency, but never fatal
-        return nullcontext()
-    return threadpool_limits(n, user_api="blas")
 
 
 def field_from_posterior(table: Any) -> MapField:

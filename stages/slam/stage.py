@@ -83,7 +83,7 @@ class SlamParams(StageParams):
     et_rings: int = Field(1, ge=1, description="rings of the discretised r_e disc")
     et_variance: Literal["exact", "taylor"] = Field(
         "taylor", description="variance at the tolerance points: with Phi linearised about the endpoint (the mean "
-        "stays exact; weights equal the exact ones to 1e-4 on the demo, README), or exact Phi^T cov Phi (slower)")
+        "stays exact; log weights within 0.003 of the exact ones on the demo, README), or exact Phi^T cov Phi (slower)")
     likelihood_exponent: float = Field(1.0, gt=0, description="exponent on the scan likelihood (1: the paper)")
     # -- particles (Sec. IV-D1, D3)
     motion_std_xy: float = Field(0.02, ge=0, description="process noise std on x and y per scan (m, eq. 21)")

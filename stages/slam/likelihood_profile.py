@@ -1,0 +1,177 @@
+"""How sharply a particle's map constrains its pose: scan log-likelihood profiles around the true pose.
+
+A map is built along ground-truth poses from the scans before scan ``k``; scan ``k`` is then scored
+at the true pose moved by body-frame offsets (forward, lateral, yaw). The profile of a weight
+function tells what the filter's selection can correct: its peak should sit at zero offset and the
+log-likelihood should fall by several units within the proposal's spread. Compared: the Hilbert-GP
+weight with the variance (eq. 28, 30), without it (mean only), and the FastSLAM grid likelihood
+field, each averaged over several test scans.
+
+    python -m stages.slam.likelihood_profile [RUN_DIR ...] [--scans 8] [--out table.md]
+
+Without RUN_DIR it profiles the synthetic corridor (``synthetic.py``); a run folder needs ``ingest/``
+and ``filter/`` (ground-truth poses at the radar scan times).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from stages.slam import hilbert_map as hm
+from stages.slam.beam_sampling import BeamSamples, radar_to_body_2d, sample_beams
+from stages.slam.grid_map import GridParticleMaps, make_grid_spec
+from stages.slam.methods import SlamConfig, domain_from_trajectory
+from stages.slam.rbpf import HilbertParticleMaps, compose, hilbert_log_likelihood
+
+F64 = npt.NDArray[np.floating[Any]]
+#: body-frame offsets profiled: metres forward / lateral, degrees of yaw
+OFFSETS_M = np.round(np.arange(-1.0, 1.0001, 0.1), 3)
+OFFSETS_DEG = np.round(np.arange(-10.0, 10.0001, 1.0), 3)
+
+
+@dataclass
+class Profile:
+    """Mean log-likelihood (relative to the true pose) per offset along one axis."""
+
+    model: str
+    axis: str  # forward | lateral | yaw
+    offsets: F64
+    loglik: F64  # mean over test scans of loglik(offset) - loglik(0)
+
+    @property
+    def peak(self) -> float:
+        return float(self.offsets[int(np.argmax(self.loglik))])
+
+    def drop_at(self, d: float) -> float:
+        """Mean fall of the log-likelihood at +-d from the true pose (positive = the true pose is preferred)."""
+        i = [int(np.argmin(np.abs(self.offsets - s))) for s in (-d, d)]
+        return float(-np.mean(self.loglik[i]))
+
+
+def offset_poses(pose: F64, axis: str) -> tuple[F64, F64]:
+    """The true pose moved by every profiled offset along ``axis`` (body frame)."""
+    offs = OFFSETS_DEG if axis == "yaw" else OFFSETS_M
+    delta = np.zeros((len(offs), 3))
+    delta[:, {"forward": 0, "lateral": 1, "yaw": 2}[axis]] = np.radians(offs) if axis == "yaw" else offs
+    return compose(np.repeat(pose[None, :], len(offs), 0), delta), offs
+
+
+def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: SlamConfig,
+             padding: float = 10.0) -> list[Profile]:
+    """Profiles of the Hilbert weight (with and without variance) and the grid likelihood field.
+
+    ``gt (T, 3)`` are the true poses of ``scans``; every scan before a test scan builds the map (one
+    map per model, grown incrementally), the test scan is only scored.
+    """
+    half, centre = domain_from_trajectory(gt[:, :2], padding)
+    basis = hm.make_basis(half, centre, cfg.n_basis, cfg.basis_kind)
+    w = cfg.weighting("rich_slam")
+    hil = HilbertParticleMaps(basis, 1, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, w,
+                              form="covariance")
+    grid = GridParticleMaps(make_grid_spec(centre, half, cfg.grid_resolution), 1, cfg.grid)
+    models = {"hilbert_gp (variance, ET)": w, "hilbert_gp (mean only)": cfg.weighting("rich_slam_mean_only"),
+              "fastslam_grid": None}
+    sums: dict[tuple[str, str], F64] = {}
+    done = 0
+    for k in sorted(test):
+        for i in range(done, k):
+            if scans[i].n:
+                hil.update(gt[i : i + 1], scans[i])
+                grid.update(gt[i : i + 1], scans[i])
+        done = k
+        if scans[k].n == 0:
+            continue
+        theta, cov = hil.map_of(0)
+        for axis in ("forward", "lateral", "yaw"):
+            poses, _ = offset_poses(gt[k], axis)
+            n = len(poses)
+            for name, weighting in models.items():
+                if weighting is None:
+                    grids = np.repeat(grid.grids, n, axis=0)
+                    g = GridParticleMaps(grid.spec, n, grid.model)
+                    g.grids = grids
+                    ll = g.log_likelihood(poses, scans[k])
+                else:
+                    ll = hilbert_log_likelihood(basis, np.repeat(theta[None], n, 0), np.repeat(cov[None], n, 0),
+                                                poses, scans[k], weighting)
+                zero = ll[n // 2]
+                sums[(name, axis)] = sums.get((name, axis), np.zeros(n)) + (ll - zero)
+    count = sum(1 for k in test if scans[k].n)
+    return [Profile(name, axis, OFFSETS_DEG if axis == "yaw" else OFFSETS_M, s / max(count, 1))
+            for (name, axis), s in sums.items()]
+
+
+def synthetic_case(n_scans: int = 300, seed: int = 1) -> tuple[F64, list[BeamSamples]]:
+    """Ground truth and beam samples of the synthetic corridor (25 beams per scan)."""
+    from stages.slam.synthetic import make_run
+
+    run = make_run(n_scans, np.random.default_rng(seed))
+    return run.groundtruth, [sample_beams(p, np.zeros(2), 1.0, 5.0) for p in run.scans]
+
+
+def run_folder_case(run_dir: Path, max_range: float = 5.0, ray_step: float = 1.0) -> tuple[F64, list[BeamSamples]]:
+    """Ground-truth poses at the radar scan times and the filtered scans' beam samples of a run folder."""
+    from schemas.io import read_artifact
+    from stages.evaluate.world import gt_interpolator
+
+    g = read_artifact(run_dir / "ingest" / "groundtruth.parquet", "groundtruth")
+    gt = {k: g[k].to_numpy() for k in ("t_ns", "x", "y", "z", "qx", "qy", "qz", "qw")}
+    order = np.argsort(gt["t_ns"], kind="stable")
+    interp = gt_interpolator({k: v[order] for k, v in gt.items()}, int(0.5e9))
+    calib = np.asarray(json.loads((run_dir / "ingest" / "calibration.json").read_text())["base_from_radar"])
+    radar = read_artifact(run_dir / "filter" / "radar_filtered.parquet", "radar_filtered",
+                          columns=["scan", "t_ns", "x", "y", "z"])
+    scan = radar["scan"].to_numpy().astype(np.int64)
+    t = radar["t_ns"].to_numpy().astype(np.int64)
+    xyz = np.stack([radar[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], 1)
+    ids, first = np.unique(scan, return_index=True)
+    ok = interp.valid(t[first])
+    ids, t_scan = ids[ok], t[first][ok]
+    pos, rot = interp.at(t_scan)
+    poses = np.column_stack([pos[:, :2], np.arctan2(rot[:, 1, 0], rot[:, 0, 0])])
+    samples = [sample_beams(*radar_to_body_2d(xyz[scan == s], calib, None, None), ray_step, max_range)
+               for s in ids]
+    return poses, samples
+
+
+def table(rows: Sequence[tuple[str, Profile]]) -> list[str]:
+    lines = ["| data | weight | axis | peak offset | drop at +-0.2 m / 2 deg | drop at +-0.5 m / 5 deg |",
+             "|---|---|---|---|---|---|"]
+    for data, p in rows:
+        unit, d1, d2 = ("deg", 2.0, 5.0) if p.axis == "yaw" else ("m", 0.2, 0.5)
+        lines.append(f"| {data} | {p.model} | {p.axis} | {p.peak + 0.0:+.1f} {unit} | {p.drop_at(d1):.2f} | "
+                     f"{p.drop_at(d2):.2f} |")
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap.add_argument("runs", nargs="*", type=Path, help="run folders <runs>/<seq> with ingest/ and filter/")
+    ap.add_argument("--scans", type=int, default=8, help="test scans per data set (evenly spaced in its second half)")
+    ap.add_argument("--out", type=Path, help="write the table as markdown here")
+    a = ap.parse_args(argv)
+    cfg = SlamConfig(workers=0)
+    cases: list[tuple[str, Any]] = [(r.name, lambda r=r: run_folder_case(r)) for r in a.runs]
+    if not cases:
+        cases = [("synthetic corridor", synthetic_case)]
+    rows: list[tuple[str, Profile]] = []
+    for name, load in cases:
+        gt, scans = load()
+        test = np.linspace(len(scans) // 2, len(scans) - 1, a.scans).round().astype(int).tolist()
+        rows += [(name, p) for p in profiles(gt, scans, test, cfg)]
+        print("\n".join(table(rows[-9:])[2:]), flush=True)
+    if a.out:
+        a.out.write_text("\n".join(table(rows)) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
