@@ -1,6 +1,7 @@
 """Run every ``benchmarks/bench_*.py`` and print one table; results also go to ``benchmarks/results.json``.
 
-Usage: ``python -m benchmarks [AREA ...] [--quick]``.
+Usage: ``python -m benchmarks [AREA ...] [--quick]``; naming areas reruns those and keeps the other
+areas' last results in ``results.json``.
 """
 
 from __future__ import annotations
@@ -36,7 +37,12 @@ def main(argv: list[str]) -> int:
         table.add_row(r.area, r.name, f"{r.value:.4g}", r.unit, r.reference,
                       "" if r.ratio is None else f"{r.ratio:.3g}", r.target, r.note)
     console.print(table)
-    (here / "results.json").write_text(json.dumps([r.as_dict() for r in results], indent=2) + "\n")
+    out = here / "results.json"
+    kept: list[dict[str, object]] = []
+    if wanted and out.exists():  # a partial run replaces its own areas and keeps the others' last results
+        areas = {r.area for r in results}
+        kept = [r for r in json.loads(out.read_text()) if r.get("area") not in areas]
+    out.write_text(json.dumps(kept + [r.as_dict() for r in results], indent=2) + "\n")
     return 0
 
 

@@ -123,8 +123,11 @@ class LocalExecutor(Executor):
 
     name = "local"
 
-    def __init__(self, workers: int | None = None) -> None:
+    def __init__(self, workers: int | None = None, threads_per_worker: int | None = None) -> None:
         self.workers = max(1, workers or (os.cpu_count() or 1))
+        #: BLAS / OpenMP threads in each worker: the cores shared out, so that parallel sequences do not
+        #: oversubscribe the machine (each library would otherwise start one thread per core)
+        self.threads = threads_per_worker or max(1, (os.cpu_count() or 1) // self.workers)
 
     def run(self, tasks: Sequence[RunTask], on_done: ProgressFn | None = None) -> list[TaskResult]:
         if self.workers == 1 or len(tasks) <= 1:
@@ -137,7 +140,7 @@ class LocalExecutor(Executor):
             while queue and len(running) < self.workers:
                 i, task = queue.pop(0)
                 recv, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_child, args=(task, send), name=f"radar-pipeline:{task.name}")
+                proc = ctx.Process(target=_child, args=(task, send, self.threads), name=f"radar-pipeline:{task.name}")
                 proc.start()
                 send.close()
                 running[i] = (proc, recv)
@@ -164,8 +167,12 @@ class LocalExecutor(Executor):
         return [results[i] for i in range(len(tasks))]
 
 
-def _child(task: RunTask, conn: Any) -> None:
-    conn.send(run_task(task))
+def _child(task: RunTask, conn: Any, threads: int = 0) -> None:
+    from pipeline.stage import blas_threads
+
+    with blas_threads(threads):
+        result = run_task(task)
+    conn.send(result)
     conn.close()
 
 
