@@ -167,9 +167,15 @@ class LocalExecutor(Executor):
         return [results[i] for i in range(len(tasks))]
 
 
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
+
+
 def _child(task: RunTask, conn: Any, threads: int = 0) -> None:
     from pipeline.stage import blas_threads
 
+    if threads > 0:  # libraries loaded from here on read these; those already loaded are limited below
+        for var in THREAD_VARIABLES:
+            os.environ[var] = str(threads)
     with blas_threads(threads):
         result = run_task(task)
     conn.send(result)

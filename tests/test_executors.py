@@ -40,6 +40,17 @@ def test_inline_and_process_pool_agree(tmp_path: Path) -> None:
     assert {r.worker for r in b} - {f"pid {os.getpid()}"}
 
 
+def test_process_pool_shares_out_blas_threads(tmp_path: Path) -> None:
+    import json
+
+    res = run_all(tasks(tmp_path, tmp_path / "r", SWEEP[:2]), LocalExecutor(2, threads_per_worker=1))
+    assert all(r.ok for r in res), [r.error for r in res]
+    for i in range(2):
+        stats = json.loads((tmp_path / "r" / f"seq{i}" / "make_numbers" / "manifest.json").read_text())["stats"]
+        assert stats["blas_threads"] == 1
+    assert LocalExecutor(2).threads == max(1, (os.cpu_count() or 1) // 2)
+
+
 def test_ray_gives_identical_metrics(tmp_path: Path) -> None:
     pytest.importorskip("ray")
     local = run_all(tasks(tmp_path, tmp_path / "local", SWEEP), LocalExecutor(2))

@@ -35,6 +35,10 @@ class MakeNumbers(Stage):
 
     def run(self, ctx: StageContext) -> None:
         type(self).calls += 1
+        from threadpoolctl import threadpool_info
+
+        ctx.stats["blas_threads"] = max((p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"),
+                                        default=0)
         time.sleep(ctx.params.sleep_s)
         i = np.arange(ctx.params.count, dtype=np.int32)
         write_artifact({"i": i, "v": i * ctx.params.scale}, ctx.output("numbers.parquet"), NUMBERS)
