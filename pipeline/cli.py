@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 from typer.exceptions import TyperException
 
@@ -21,6 +22,7 @@ from pipeline.registry import load_stages
 from pipeline.runner import Runner, StageOutcome, StagesFailed
 from pipeline.sequences import SequenceInfo, expand_sequences, load_registry, source_sequence
 from pipeline.store import RunStore
+from pipeline.sweep import command as sweep_command
 
 if TYPE_CHECKING:
     from pipeline.executors import TaskResult
@@ -57,7 +59,7 @@ def _print_outcomes(seq: str, outcomes: list[StageOutcome]) -> None:
     table.add_column("note")
     styles = {"ran": "green", "cached": "dim", "skipped": "yellow", "failed": "red"}
     for o in outcomes:
-        table.add_row(o.stage, f"[{styles.get(o.action, '')}]{o.action}[/]", f"{o.seconds:.1f}", o.reason)
+        table.add_row(o.stage, f"[{styles.get(o.action, '')}]{o.action}[/]", f"{o.seconds:.1f}", escape(o.reason))
     console.print(table)
 
 
@@ -103,7 +105,8 @@ def run(
 
     def on_done(res: TaskResult) -> None:
         mark = "[green]ok[/]" if res.ok else "[red]failed[/]"
-        console.print(f"  {res.name}: {mark} in {res.seconds:.1f} s" + ("" if res.ok else f": {_first_line(res)}"))
+        why = "" if res.ok else f": {escape(_first_line(res))}"
+        console.print(f"  {escape(res.name)}: {mark} in {res.seconds:.1f} s{why}")
 
     results = run_all(tasks, ex, on_done)
     _print_results(results, runs)
@@ -129,7 +132,7 @@ def _print_results(results: list[TaskResult], runs: Path) -> None:
     console.print(table)
     for r in results:
         if r.error_kind == "bug":
-            console.print(f"[red]{r.name}[/]: {r.error}")
+            console.print(f"[red]{escape(r.name)}[/]: {escape(str(r.error))}")
     gather = _comparison_table()
     if gather is not None:
         cmp = gather(runs, [r.seq for r in results if r.ok])
@@ -271,7 +274,7 @@ def report(
     out_file: Annotated[Path | None, typer.Option("--out", help="also write the tables as markdown (and the "
                                                   "combined metrics as .parquet beside it)")] = None,
     sweep: Annotated[str | None, typer.Option("--sweep", help="gather a sweep's points (runs/sweeps/NAME) "
-                                              "instead; run sweeps with `python -m pipeline.sweep NAME`")] = None,
+                                              "instead; run sweeps with `pipeline sweep NAME --seq SEQ`")] = None,
 ) -> None:
     """Gather the evaluate results of several runs (or of a sweep) into one comparison table."""
     from pipeline import report as rep
@@ -350,12 +353,15 @@ def train(
         out.print(summary[key])
 
 
+app.command("sweep")(sweep_command)
+
+
 def main() -> None:
     """Console entry point with the exit-code contract."""
     try:
         app(standalone_mode=False)
     except UserError as exc:
-        console.print(f"[bold red]error:[/] {exc}", soft_wrap=True, highlight=False)
+        console.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True, highlight=False)
         sys.exit(2)
     except typer.Abort:
         console.print("[red]aborted[/]")
@@ -367,7 +373,7 @@ def main() -> None:
         if callable(show):
             show()
         else:
-            console.print(f"[bold red]error:[/] {exc}")
+            console.print(f"[bold red]error:[/] {escape(str(exc))}")
         sys.exit(int(getattr(exc, "exit_code", 2) or 2))
     except KeyboardInterrupt:
         console.print("[red]interrupted[/]: finished stages are kept, the running one left its previous result")

@@ -203,7 +203,7 @@ def sweep_records(runs_dir: Path, name: str, seqs: str | None = None) -> list[di
 
     path = sweep_root(runs_dir, name) / "sweep_metrics.parquet"
     if not path.exists():
-        raise UserError(f"{path}: no gathered sweep; run `python -m pipeline.sweep {name} --seq <seq>` first")
+        raise UserError(f"{path}: no gathered sweep; run `pipeline sweep {name} --seq <seq>` first")
     records = read_records(path)
     if seqs:
         wanted = set(resolve_sequences(seqs, runs_dir)) | {s.strip() for s in seqs.split(",")}

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 
 from pipeline import __version__
 from pipeline.config import Overrides, Workflow, build_params, check_param_names
@@ -242,7 +243,7 @@ class Runner:
         plan = self.closure(wanted)
         with self.store.lock():
             for note in self.store.recover():
-                self.console.print(f"[yellow]note[/] {self.seq.name}: {note}")
+                self.console.print(f"[yellow]note[/] {self.seq.name}: {escape(note)}")
             failed: list[StageOutcome] = []
             for name in plan:
                 blocked = [d for d in self.inputs_of(name) if any(f.stage == d for f in failed)]
@@ -271,7 +272,7 @@ class Runner:
                                        error=exc)
                     outcomes.append(bad)
                     failed.append(bad)
-                    self.console.print(f"[red]{name:<9} failed[/]: {bad.reason}")
+                    self.console.print(f"[red]{name:<9} failed[/]: {escape(bad.reason)}")
                     continue
                 outcomes.append(StageOutcome(name, "ran", seconds, why))
                 self.console.print(f"[green]{name:<9} done[/] in {seconds:.1f} s")

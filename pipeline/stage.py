@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from pipeline.errors import UserError
@@ -146,7 +147,7 @@ class StageContext:
 
     def warn(self, message: str) -> None:
         """Print a warning and keep it in the manifest."""
-        self.console.print(f"[yellow]warning[/] {self.stage}: {message}")
+        self.console.print(f"[yellow]warning[/] {self.stage}: {escape(message)}")
         self.stats.setdefault("warnings", []).append(message)
 
     @contextmanager

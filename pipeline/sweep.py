@@ -9,7 +9,7 @@ pool or Ray on request). Afterwards the ``evaluate`` metrics of all points are g
 ``runs/sweeps/<workflow>/sweep_metrics.parquet`` and the workflow's figure is drawn
 (``[workflow] figure = "auc_vs_features"`` for RICH-SLAM Fig. 6, ``"hyperparameter_grid"`` for Fig. 7).
 
-Run one with ``python -m pipeline.sweep sweep_fig7 --seq demo``.
+Run one with ``pipeline sweep sweep_fig7 --seq demo`` (or ``python -m pipeline.sweep ...``).
 """
 
 from __future__ import annotations

@@ -155,13 +155,21 @@ def test_sweep_command_line_exit_codes() -> None:
     import subprocess
     import sys
 
+    entry = ["-m", "pipeline.sweep"]
+
     def run(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "pipeline.sweep", *args], capture_output=True, text=True,
+        return subprocess.run([sys.executable, *entry, *args], capture_output=True, text=True,
                               cwd=ROOT, env={**os.environ, "COLUMNS": "200"}, timeout=120)
 
     assert run("--help").returncode == 0
+    entry = ["-m", "pipeline", "sweep"]  # the same command under `pipeline sweep`
+    h = run("--help")
+    assert h.returncode == 0 and "sweep workflow" in h.stdout
     r = run("default", "--seq", "demo")
     assert r.returncode == 2 and "has no [sweep] table" in r.stderr and "Traceback" not in r.stderr
     r = run("sweep_fig7", "--seq", "dmeo")
     assert r.returncode == 2 and "did you mean 'demo'" in r.stderr
     assert run("--bogus").returncode == 2
+    entry = ["-m", "pipeline.sweep"]
+    r = run("sweep_fig7", "--seq", "dmeo")
+    assert r.returncode == 2 and "did you mean 'demo'" in r.stderr
