@@ -239,7 +239,8 @@ def test_stage_writes_metrics_report_figures_and_rerun(tmp_path: Path) -> None:
     report = (out / "report.md").read_text()
     for needle in ("Table III", "| rich_slam |", "AUC", "hilbert_gp", "RMap", "radar_map", "trajectories.png"):
         assert needle in report
-    for fig in ("trajectories.png", "auc_vs_features.png", "gt_map.png", "uncertainty.png", "maps_top.png"):
+    for fig in ("trajectories.png", "auc_vs_features.png", "gt_map.png", "uncertainty.png", "maps_top.png",
+                "query_resolutions.png"):
         assert (out / fig).stat().st_size > 1000, fig
         assert f"]({fig})" in report
     assert read_artifact(out / "gt_map_grid.parquet", "map_grid").num_rows > 100

@@ -166,3 +166,28 @@ def plot_maps_top(path: Path, clouds: Mapping[str, F64], title: str = "", max_po
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_query_resolutions(path: Path, panels: Sequence[tuple[float, F64, F64, F64]], title: str = "") -> Path:
+    """Fig. 9: one occupancy field (eq. 28) evaluated on grids of decreasing spacing, one panel each."""
+    plt = _plt()
+    n = len(panels)
+    _, gx0, gy0, _ = panels[0]
+    aspect = (gy0[-1] - gy0[0] + 1e-9) / max(gx0[-1] - gx0[0], 1e-9)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, max(3.0, 4.0 * aspect) + 0.8), squeeze=False,
+                             constrained_layout=True)
+    im = None
+    for ax, (spacing, gx, gy, occ) in zip(axes[0], panels, strict=True):
+        h = spacing / 2
+        im = ax.imshow(occ.T, origin="lower", extent=(gx[0] - h, gx[-1] + h, gy[0] - h, gy[-1] + h),
+                       cmap="viridis", vmin=0, vmax=1, interpolation="nearest")
+        ax.set_title(f"{spacing:g} m grid ({len(gx)} x {len(gy)})", fontsize=9)
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+    if im is not None:
+        fig.colorbar(im, ax=axes, shrink=0.7, label="occupancy probability")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
