@@ -316,15 +316,11 @@ class Evaluation:
         d = ctx.input_dirs.get("slam")
         if d is None or not (d / "map_posterior.parquet").exists() or not ctx.params.query_spacings:
             return
+        from stages.plan.stage import field_from_posterior
         from stages.slam import hilbert_map as hm
 
-        t = read_artifact(d / "map_posterior.parquet", "map_posterior")
-        row = {c: t[c][0].as_py() for c in t.column_names}
-        M = int(row["M"])
-        kind: hm.BasisKind = "circular" if row.get("basis_kind") == "circular" else "tensor"
-        basis = hm.make_basis((row["L1"], row["L2"]), (row["cx"], row["cy"]), M, kind)
-        theta = np.asarray(row["theta"], np.float64)
-        cov = np.asarray(row["cov"], np.float64).reshape(M, M)
+        field = field_from_posterior(read_artifact(d / "map_posterior.parquet", "map_posterior"))
+        basis, theta, cov, M = field.basis, field.theta, field.cov, field.basis.M
         lo, hi = basis.centre - basis.half_widths, basis.centre + basis.half_widths
         panels: list[tuple[float, F64, F64, F64]] = []
         for spacing in sorted(ctx.params.query_spacings, reverse=True):
