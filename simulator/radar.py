@@ -90,23 +90,14 @@ def _to_radar(points: np.ndarray, origin: np.ndarray, yaw: float) -> np.ndarray:
 
 def _visible(scene: Scene, origin: np.ndarray, targets: np.ndarray) -> np.ndarray:
     """Whether each target point (K, 3) is seen from ``origin`` (nothing hit before it)."""
-    d = targets - origin
-    dxy = np.hypot(d[:, 0], d[:, 1])
-    ok = dxy > 1e-6
-    out = np.zeros(len(targets), bool)
-    if not ok.any():
-        return out
-    h = d[ok, :2] / dxy[ok, None]
-    r = np.linalg.norm(d[ok], axis=1)
-    with np.errstate(invalid="ignore"):  # level rays: 0 slope * inf distance in the caster's height test
-        hits = cast(scene, np.broadcast_to(origin, (int(ok.sum()), 3)), h, (d[ok, 2] / dxy[ok])[:, None],
-                    float(r.max()) + 1)
-    out[ok] = hits.range[:, 0] >= r - OCCLUSION_TOL - 2e-3 * r
-    return out
+    return _visible_from(scene, np.broadcast_to(origin, targets.shape), targets, nudge=0.0)
 
 
-def _visible_from(scene: Scene, starts: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """Whether the straight legs ``starts -> targets`` (K, 3) are unobstructed."""
+def _visible_from(scene: Scene, starts: np.ndarray, targets: np.ndarray, nudge: float = 1e-3) -> np.ndarray:
+    """Whether the straight legs ``starts -> targets`` (K, 3) are unobstructed.
+
+    Each leg starts ``nudge`` metres along itself, so that a start on a surface does not hit that surface.
+    """
     d = targets - starts
     dxy = np.hypot(d[:, 0], d[:, 1])
     ok = dxy > 1e-6
@@ -115,10 +106,10 @@ def _visible_from(scene: Scene, starts: np.ndarray, targets: np.ndarray) -> np.n
         return out
     h = d[ok, :2] / dxy[ok, None]
     r = np.linalg.norm(d[ok], axis=1)
-    o = starts[ok] + 1e-3 * d[ok] / r[:, None]
-    with np.errstate(invalid="ignore"):
+    o = starts[ok] + nudge * d[ok] / r[:, None] if nudge else starts[ok]
+    with np.errstate(invalid="ignore"):  # level rays: 0 slope * inf distance in the caster's height test
         hits = cast(scene, o, h, (d[ok, 2] / dxy[ok])[:, None], float(r.max()) + 1)
-    out[ok] = hits.range[:, 0] >= r - 1e-3 - OCCLUSION_TOL - 2e-3 * r
+    out[ok] = hits.range[:, 0] >= r - nudge - OCCLUSION_TOL - 2e-3 * r
     return out
 
 

@@ -26,8 +26,8 @@ import numpy as np
 import numpy.typing as npt
 
 from stages.slam import hilbert_map as hm
-from stages.slam.beam_sampling import BeamSamples, radar_to_body_2d, sample_beams
-from stages.slam.grid_map import GridParticleMaps, make_grid_spec
+from stages.slam.beam_sampling import BeamSamples, radar_to_body_2d, sample_beams, to_world
+from stages.slam.grid_map import GridParticleMaps, likelihood_field_log_likelihood, make_grid_spec
 from stages.slam.methods import SlamConfig, domain_from_trajectory
 from stages.slam.rbpf import HilbertParticleMaps, compose, hilbert_log_likelihood
 
@@ -95,10 +95,8 @@ def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: Sl
             n = len(poses)
             for name, weighting in models.items():
                 if weighting is None:
-                    grids = np.repeat(grid.grids, n, axis=0)
-                    g = GridParticleMaps(grid.spec, n, grid.model)
-                    g.grids = grids
-                    ll = g.log_likelihood(poses, scans[k])
+                    ll = likelihood_field_log_likelihood(np.repeat(grid.grids, n, axis=0), grid.spec,
+                                                         to_world(poses, scans[k].endpoints), grid.model)
                 else:
                     ll = hilbert_log_likelihood(basis, np.repeat(theta[None], n, 0), np.repeat(cov[None], n, 0),
                                                 poses, scans[k], weighting)

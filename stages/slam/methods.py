@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, Literal
 
 import numpy as np
@@ -125,16 +126,11 @@ def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_pa
                       form: Literal["information", "covariance"] = "information",
                       ) -> HilbertParticleMaps | ParallelHilbertMaps:
     """The particle maps of a Hilbert method, in ``workers`` processes when ``workers > 0``."""
-    if cfg.workers > 0:
-        return ParallelHilbertMaps(
-            basis, n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, cfg.weighting(method),
-            update=cfg.map_update, dtype=np.dtype(cfg.dtype), laplace_iterations=cfg.laplace_iterations,
-            workers=cfg.workers, form=form)
-    return HilbertParticleMaps(
-        basis, n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, cfg.weighting(method),
-        update=cfg.map_update, dtype=np.dtype(cfg.dtype), laplace_iterations=cfg.laplace_iterations,
-        form=form,
-    )
+    factory: Callable[..., HilbertParticleMaps | ParallelHilbertMaps] = (
+        partial(ParallelHilbertMaps, workers=cfg.workers) if cfg.workers > 0 else HilbertParticleMaps)
+    return factory(basis, n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
+                   cfg.weighting(method), update=cfg.map_update, dtype=np.dtype(cfg.dtype),
+                   laplace_iterations=cfg.laplace_iterations, form=form)
 
 
 Observer = Callable[[int, RBPF, int], None]
