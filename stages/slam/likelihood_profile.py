@@ -16,7 +16,6 @@ and ``filter/`` (ground-truth poses at the radar scan times).
 from __future__ import annotations
 
 import argparse
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from stages.slam import hilbert_map as hm
-from stages.slam.beam_sampling import BeamSamples, radar_to_body_2d, sample_beams, to_world
+from stages.slam.beam_sampling import BeamSamples, sample_beams, to_world
 from stages.slam.grid_map import GridParticleMaps, likelihood_field_log_likelihood, make_grid_spec
 from stages.slam.methods import SlamConfig, domain_from_trajectory
 from stages.slam.rbpf import HilbertParticleMaps, compose, hilbert_log_likelihood
@@ -117,16 +116,12 @@ def synthetic_case(n_scans: int = 300, seed: int = 1) -> tuple[F64, list[BeamSam
 
 def run_folder_case(run_dir: Path, max_range: float = 5.0, ray_step: float = 1.0) -> tuple[F64, list[BeamSamples]]:
     """Ground-truth poses at the radar scan times and the filtered scans' beam samples of a run folder."""
-    from schemas.io import read_artifact
     from stages.evaluate.world import gt_interpolator
+    from stages.slam.stage import SlamParams, beam_samples_by_scan
+    from stages.slam.unit_study import read_run_folder
 
-    g = read_artifact(run_dir / "ingest" / "groundtruth.parquet", "groundtruth")
-    gt = {k: g[k].to_numpy() for k in ("t_ns", "x", "y", "z", "qx", "qy", "qz", "qw")}
-    order = np.argsort(gt["t_ns"], kind="stable")
-    interp = gt_interpolator({k: v[order] for k, v in gt.items()}, int(0.5e9))
-    calib = np.asarray(json.loads((run_dir / "ingest" / "calibration.json").read_text())["base_from_radar"])
-    radar = read_artifact(run_dir / "filter" / "radar_filtered.parquet", "radar_filtered",
-                          columns=["scan", "t_ns", "x", "y", "z"])
+    gt, calib, radar = read_run_folder(run_dir)
+    interp = gt_interpolator(gt, int(0.5e9))
     scan = radar["scan"].to_numpy().astype(np.int64)
     t = radar["t_ns"].to_numpy().astype(np.int64)
     xyz = np.stack([radar[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], 1)
@@ -135,9 +130,7 @@ def run_folder_case(run_dir: Path, max_range: float = 5.0, ray_step: float = 1.0
     ids, t_scan = ids[ok], t[first][ok]
     pos, rot = interp.at(t_scan)
     poses = np.column_stack([pos[:, :2], np.arctan2(rot[:, 1, 0], rot[:, 0, 0])])
-    samples = [sample_beams(*radar_to_body_2d(xyz[scan == s], calib, None, None), ray_step, max_range)
-               for s in ids]
-    return poses, samples
+    return poses, beam_samples_by_scan(scan, xyz, ids, calib, SlamParams(max_range=max_range, ray_step=ray_step))
 
 
 def table(rows: Sequence[tuple[str, Profile]]) -> list[str]:

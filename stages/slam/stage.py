@@ -232,17 +232,23 @@ def read_samples(ctx: StageContext, scans: npt.NDArray[np.int64], base_from_rada
     """Body-frame beam samples for every odometry scan (empty where the filter kept nothing)."""
     path = ctx.input("filter", "radar_filtered.parquet")
     t = read_artifact(path, "radar_filtered", columns=["scan", "x", "y", "z"])
-    s = t["scan"].to_numpy().astype(np.int64)
     xyz = np.stack([t[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], axis=1)
-    order = np.argsort(s, kind="stable")
-    s, xyz = s[order], xyz[order]
+    out = beam_samples_by_scan(t["scan"].to_numpy().astype(np.int64), xyz, scans, base_from_radar, p)
+    ctx.stats["radar_points_used"] = int(sum(len(o.endpoints) for o in out))
+    return out
+
+
+def beam_samples_by_scan(point_scan: npt.NDArray[np.int64], xyz: F64, scans: npt.NDArray[np.int64],
+                         base_from_radar: F64, p: SlamParams) -> list[BeamSamples]:
+    """Body-frame beam samples of every scan in ``scans`` from radar-frame points ``xyz`` tagged ``point_scan``."""
+    order = np.argsort(point_scan, kind="stable")
+    s, xyz = point_scan[order], xyz[order]
     lo = np.searchsorted(s, scans, side="left")
     hi = np.searchsorted(s, scans, side="right")
     out = []
     for a, b in zip(lo, hi, strict=True):
         pts, origin = radar_to_body_2d(xyz[a:b], base_from_radar, p.z_min, p.z_max)
         out.append(sample_beams(pts, origin, p.ray_step, p.max_range, p.min_range, p.free_clearance))
-    ctx.stats["radar_points_used"] = int(sum(len(o.endpoints) for o in out))
     return out
 
 

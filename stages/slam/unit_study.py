@@ -33,22 +33,28 @@ def prior_properties(basis: hm.HilbertBasis, lengthscale_m: float, signal_varian
     return {"active_basis": active, "prior_share_centre": share}
 
 
-def study_run(run_dir: Path, units: list[float], lengthscale: float = 20.0, signal_variance: float = 16.0,
-              noise_variance: float = 0.36, M: int = 256, padding: float = 10.0, max_range: float = 5.0,
-              seed: int = 0) -> list[dict[str, Any]]:
-    """AUC and prior properties per unit on one run folder (ground-truth poses)."""
+def read_run_folder(run_dir: Path) -> tuple[dict[str, Any], F64, Any]:
+    """Ground truth (columns sorted by time), ``base_from_radar`` and the filtered radar table of a run folder."""
     from schemas.io import read_artifact
-    from stages.evaluate.mapping import GPConfig, fit_hilbert_gp
-    from stages.evaluate.occupancy import hilbert_maps_samples, roc_auc, split_scans_by_block
-    from stages.evaluate.world import gt_interpolator, radar_beams_world
 
     g = read_artifact(run_dir / "ingest" / "groundtruth.parquet", "groundtruth")
     gt = {k: g[k].to_numpy() for k in ("t_ns", "x", "y", "z", "qx", "qy", "qz", "qw")}
     order = np.argsort(gt["t_ns"], kind="stable")
-    gt = {k: v[order] for k, v in gt.items()}
     calib = np.asarray(json.loads((run_dir / "ingest" / "calibration.json").read_text())["base_from_radar"])
     radar = read_artifact(run_dir / "filter" / "radar_filtered.parquet", "radar_filtered",
                           columns=["scan", "t_ns", "x", "y", "z"])
+    return {k: v[order] for k, v in gt.items()}, calib, radar
+
+
+def study_run(run_dir: Path, units: list[float], lengthscale: float = 20.0, signal_variance: float = 16.0,
+              noise_variance: float = 0.36, M: int = 256, padding: float = 10.0, max_range: float = 5.0,
+              seed: int = 0) -> list[dict[str, Any]]:
+    """AUC and prior properties per unit on one run folder (ground-truth poses)."""
+    from stages.evaluate.mapping import GPConfig, fit_hilbert_gp
+    from stages.evaluate.occupancy import hilbert_maps_samples, roc_auc, split_scans_by_block
+    from stages.evaluate.world import gt_interpolator, radar_beams_world
+
+    gt, calib, radar = read_run_folder(run_dir)
     interp = gt_interpolator(gt, int(0.5e9))
     beams = radar_beams_world(radar, calib, interp, max_range)
     rng = np.random.default_rng(seed)
