@@ -316,15 +316,14 @@ class Evaluation:
         d = ctx.input_dirs.get("slam")
         if d is None or not (d / "map_posterior.parquet").exists() or not ctx.params.query_spacings:
             return
-        from stages.plan.stage import field_from_posterior
+        from stages.plan.stage import field_from_posterior, grid_axes
         from stages.slam import hilbert_map as hm
 
         field = field_from_posterior(read_artifact(d / "map_posterior.parquet", "map_posterior"))
         basis, theta, cov, M = field.basis, field.theta, field.cov, field.basis.M
-        lo, hi = basis.centre - basis.half_widths, basis.centre + basis.half_widths
         panels: list[tuple[float, F64, F64, F64]] = []
         for spacing in sorted(ctx.params.query_spacings, reverse=True):
-            gx, gy = np.arange(lo[0] + spacing / 2, hi[0], spacing), np.arange(lo[1] + spacing / 2, hi[1], spacing)
+            gx, gy = grid_axes(field.lo, field.hi, spacing)
             if len(gx) == 0 or len(gy) == 0:
                 continue
             pts = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
