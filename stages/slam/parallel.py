@@ -32,7 +32,7 @@ _THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 @dataclass(frozen=True)
 class _Spec:
-    names: tuple[str, ...]  # shared blocks: theta, info, chol (information form) or theta, cov
+    names: tuple[str, ...]  # shared blocks: theta, info, eta (information form) or theta, cov
     n_particles: int
     M: int
     dtype: str
@@ -56,8 +56,8 @@ def _attach(name: str, shape: tuple[int, ...], dtype: str) -> tuple[SharedMemory
 def _worker_main(conn: Connection, spec: _Spec) -> None:
     """Serve ``("step", poses, points, labels)`` requests on particles ``[lo, hi)`` until ``None``."""
     Np, M = spec.n_particles, spec.M
-    blocks = [_attach(spec.names[0], (Np, M), spec.dtype)]
-    blocks += [_attach(name, (Np, M, M), spec.dtype) for name in spec.names[1:]]
+    shapes = [(Np, M), (Np, M, M), (Np, M)]  # theta, info or cov, eta
+    blocks = [_attach(name, shape, spec.dtype) for name, shape in zip(spec.names, shapes, strict=False)]
     arrays = tuple(b[1][spec.lo : spec.hi] for b in blocks)
     maps = HilbertParticleMaps(
         spec.basis, spec.hi - spec.lo, spec.lengthscale, spec.signal_variance, spec.noise_variance, spec.weighting,
@@ -74,9 +74,7 @@ def _worker_main(conn: Connection, spec: _Spec) -> None:
             _, poses, points, labels, beam, origin = msg
             samples = BeamSamples(points, labels, beam, points[labels > 0], origin)
             try:
-                ll = maps.log_likelihood(poses, samples)
-                maps.update(poses, samples)
-                conn.send(("ok", ll))
+                conn.send(("ok", maps.weigh_and_update(poses, samples)))
             except Exception as exc:  # report, keep serving
                 conn.send(("error", f"{type(exc).__name__}: {exc}"))
     finally:
@@ -120,12 +118,12 @@ class ParallelHilbertMaps:
             _, info0, _ = hm.prior_information(basis, lengthscale, signal_variance)
             init = StackedInformation(np.diag(info0), 1, self.dtype)
             info = self._shared((n_particles, M, M))
-            chol = self._shared((n_particles, M, M))
+            eta = self._shared((n_particles, M))
             info[...] = init.info[0]
-            chol[...] = init.chol[0]
+            eta[...] = 0
             # kernels for the parent's queries of single maps
-            self.stack = StackedInformation(np.diag(info0), n_particles, self.dtype, arrays=(info, chol))
-            self._stacks = [self.theta, info, chol]
+            self.stack = StackedInformation(np.diag(info0), n_particles, self.dtype, arrays=(info, eta))
+            self._stacks = [self.theta, info, eta]
         else:
             _, cov0 = hm.prior(basis, lengthscale, signal_variance, dtype=self.dtype)
             self.cov = self._shared((n_particles, M, M))
@@ -169,6 +167,10 @@ class ParallelHilbertMaps:
         return np.ndarray(shape, dtype=self.dtype, buffer=shm.buf)
 
     def log_likelihood(self, poses: F64, samples: BeamSamples) -> F64:
+        """The weights and, in the same round trip, the map update (see the class docstring)."""
+        return self.weigh_and_update(poses, samples)
+
+    def weigh_and_update(self, poses: F64, samples: BeamSamples) -> F64:
         if samples.n == 0:
             return np.zeros(len(poses))
         for c, lo, hi in zip(self._conns, self._bounds[:-1], self._bounds[1:], strict=True):
@@ -192,7 +194,7 @@ class ParallelHilbertMaps:
     def map_of(self, k: int) -> tuple[F64, F64]:
         """Mean and covariance of particle k's map (float64)."""
         if self.stack is not None:
-            return self.theta[k].astype(np.float64), hm.covariance_from_information(self.stack.lower_factor(k))
+            return self.stack.mean(k), hm.covariance_from_information(self.stack.lower_factor(k))
         return self.theta[k].astype(np.float64), self.cstack.full(k)
 
     def close(self) -> None:
@@ -211,7 +213,7 @@ class ParallelHilbertMaps:
         self.cov = None
         self._stacks = []
         if self.stack is not None:
-            self.stack.info = self.stack.chol = np.zeros((0, 0, 0))
+            self.stack.info, self.stack.eta = np.zeros((0, 0, 0)), np.zeros((0, 0))
         for shm in self._shm:
             shm.close()
             shm.unlink()

@@ -6,9 +6,8 @@ copy). These kernels call the BLAS/LAPACK routines directly on each particle's m
 in a tight loop, with no copies: the matrices stay C-ordered ``(Np, M, M)`` stacks and each slice is
 handed to Fortran as its (F-contiguous) transpose.
 
-Storage convention: ``info[k].T`` (Fortran view) holds ``Y_k = cov_k^-1`` in its lower triangle;
-``chol[k].T`` holds the lower Cholesky factor ``L_k`` (``Y_k = L_k L_k^T``), so ``chol[k]`` is the
-upper factor ``L_k^T`` in C order with zeros below the diagonal.
+Storage convention: ``info[k].T`` (Fortran view) holds ``Y_k = cov_k^-1`` in its lower triangle and
+``eta[k] = Y_k theta_k``; the Cholesky factor ``L_k`` (``Y_k = L_k L_k^T``) is recomputed per scan.
 """
 
 from __future__ import annotations
@@ -24,7 +23,13 @@ FloatArray = npt.NDArray[np.floating[Any]]
 
 
 class StackedInformation:
-    """Information matrices and Cholesky factors of ``Np`` maps."""
+    """Information matrices ``Y_k = cov_k^-1`` and vectors ``eta_k = Y_k theta_k`` of ``Np`` maps.
+
+    No factor is stored. :meth:`scan` factors each ``Y_k`` into one scratch matrix and, while that
+    matrix and ``Y_k`` are still in cache, solves the mean, whitens the scan's rows and applies the
+    rank-N update (eq. 15-19 in information form: ``Y += H H^T / s2``, ``eta += H z / s2``): one pass
+    over the stack per scan instead of one per kernel, and half the memory of storing the factors.
+    """
 
     def __init__(
         self,
@@ -33,18 +38,16 @@ class StackedInformation:
         dtype: npt.DTypeLike = np.float64,
         arrays: tuple[FloatArray, FloatArray] | None = None,
     ) -> None:
-        """Maps at the prior ``Y = diag(prior_info_diag)``, or wrapping existing ``(info, chol)`` arrays."""
+        """Maps at the prior ``Y = diag(prior_info_diag)``, ``eta = 0``, or wrapping ``(info, eta)``."""
         d = np.asarray(prior_info_diag, dtype=np.float64)
         self.dtype = np.dtype(dtype)
         M = d.size
         if arrays is not None:
-            self.info, self.chol = arrays
+            self.info, self.eta = arrays
         else:
             self.info = np.zeros((n_maps, M, M), dtype=self.dtype)
-            self.chol = np.zeros((n_maps, M, M), dtype=self.dtype)
-            idx = np.arange(M)
-            self.info[:, idx, idx] = d.astype(self.dtype)
-            self.chol[:, idx, idx] = np.sqrt(d).astype(self.dtype)
+            self.info[:, np.arange(M), np.arange(M)] = d.astype(self.dtype)
+            self.eta = np.zeros((n_maps, M), dtype=self.dtype)
         self._syrk, self._trsm = get_blas_funcs(("syrk", "trsm"), dtype=self.dtype)
         self._potrf, self._potrs = get_lapack_funcs(("potrf", "potrs"), dtype=self.dtype)
 
@@ -52,55 +55,75 @@ class StackedInformation:
     def n(self) -> int:
         return int(self.info.shape[0])
 
-    def whiten(self, V: FloatArray) -> FloatArray:
-        """Rows ``L_k^-1 v`` for ``V (Np, K, M)``: then ``v^T cov_k v = ||L_k^-1 v||^2``."""
-        V = np.asarray(V, dtype=self.dtype)
-        out = np.empty(V.shape, dtype=self.dtype)
-        if V.shape[1] == 0:
-            return out
-        trsm = self._trsm
-        for k in range(self.n):
-            out[k].T[...] = trsm(1.0, self.chol[k].T, V[k].T, side=0, lower=1, trans_a=0)
+    def _factor(self, k: int, out: FloatArray) -> FloatArray:
+        """``L_k`` (lower, Fortran order; the strict upper triangle of ``out`` is left as it was)."""
+        out[...] = self.info[k].T
+        _, err = self._potrf(out, lower=1, overwrite_a=1, clean=0)
+        if err != 0:
+            raise np.linalg.LinAlgError(f"information matrix of particle {k} is not positive definite ({err})")
         return out
 
-    def add_gram(self, phi: FloatArray, weights: FloatArray | float) -> None:
-        """``Y_k += Phi_k^T diag(w_k) Phi_k`` (symmetric rank-N update, lower triangle only)."""
+    def scan(
+        self,
+        rows: FloatArray,
+        gram: FloatArray | None = None,
+        gram_scale: float = 1.0,
+        eta_coef: FloatArray | None = None,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Per map, before any update: ``theta_k = Y_k^-1 eta_k`` and rows ``L_k^-1 v`` of ``rows (Np, K, M)``
+        (then ``v^T cov_k v = ||L_k^-1 v||^2``); then, if ``gram (Np, N, M)`` is given,
+        ``Y_k += gram_scale gram_k^T gram_k`` and ``eta_k += gram_k^T eta_coef_k``."""
+        rows = np.asarray(rows, dtype=self.dtype)
+        Np, M = self.n, self.info.shape[-1]
+        theta = np.empty((Np, M), dtype=self.dtype)
+        out = np.array(rows, dtype=self.dtype, order="C", copy=True)
+        if gram is not None:
+            gram = np.ascontiguousarray(gram, dtype=self.dtype)
+            assert eta_coef is not None
+            coef = np.asarray(eta_coef, dtype=self.dtype)
+        L = np.zeros((M, M), dtype=self.dtype, order="F")
+        potrs, trsm, syrk = self._potrs, self._trsm, self._syrk
+        for k in range(Np):
+            self._factor(k, L)
+            theta[k], _ = potrs(L, self.eta[k], lower=1)
+            if out.shape[1]:
+                trsm(1.0, L, out[k].T, side=0, lower=1, overwrite_b=1)
+            if gram is not None and gram.shape[1]:
+                syrk(gram_scale, gram[k].T, beta=1.0, c=self.info[k].T, trans=0, lower=1, overwrite_c=1)
+                self.eta[k] += coef[k] @ gram[k]
+        return theta, out
+
+    def whiten(self, V: FloatArray) -> FloatArray:
+        """Rows ``L_k^-1 v`` for ``V (Np, K, M)`` (no update)."""
+        return self.scan(V)[1]
+
+    def add(self, phi: FloatArray, weights: FloatArray | float, eta_coef: FloatArray) -> None:
+        """``Y_k += Phi_k^T diag(w_k) Phi_k`` (symmetric rank-N update, lower triangle) and
+        ``eta_k += Phi_k^T eta_coef_k``."""
         phi = np.asarray(phi, dtype=self.dtype)
         if phi.shape[1] == 0:
             return
         w = np.broadcast_to(np.asarray(weights, dtype=self.dtype), phi.shape[:2])
         scaled = phi * np.sqrt(w)[..., None]
+        self.eta += np.einsum("kn,knm->km", np.asarray(eta_coef, dtype=self.dtype), phi)
         syrk = self._syrk
         for k in range(self.n):
             syrk(1.0, scaled[k].T, beta=1.0, c=self.info[k].T, trans=0, lower=1, overwrite_c=1)
 
-    def factorize(self) -> None:
-        """``L_k = chol(Y_k)`` for every map (copy, then LAPACK potrf in place)."""
-        potrf = self._potrf
-        for k in range(self.n):
-            c = self.chol[k]
-            c[...] = self.info[k]
-            _, err = potrf(c.T, lower=1, overwrite_a=1, clean=1)
-            if err != 0:
-                raise np.linalg.LinAlgError(f"information matrix of particle {k} is not positive definite ({err})")
-
-    def solve(self, b: FloatArray) -> FloatArray:
-        """``Y_k^-1 b_k`` for ``b (Np, M)``."""
-        b = np.asarray(b, dtype=self.dtype)
-        out = np.empty_like(b)
-        potrs = self._potrs
-        for k in range(self.n):
-            out[k], _ = potrs(self.chol[k].T, b[k], lower=1)
-        return out
-
     def select(self, indices: npt.NDArray[np.int64]) -> None:
         """Keep maps ``indices`` (fancy indexing copies: duplicates never share memory)."""
         self.info = self.info[indices]
-        self.chol = self.chol[indices]
+        self.eta = self.eta[indices]
 
     def lower_factor(self, k: int) -> npt.NDArray[np.float64]:
         """``L_k`` as a C-ordered float64 lower-triangular matrix."""
-        return np.ascontiguousarray(self.chol[k].T, dtype=np.float64)
+        L = self._factor(k, np.zeros(self.info.shape[1:], dtype=self.dtype, order="F"))
+        return np.ascontiguousarray(np.tril(L), dtype=np.float64)
+
+    def mean(self, k: int) -> npt.NDArray[np.float64]:
+        """``theta_k = Y_k^-1 eta_k`` (float64)."""
+        L = self._factor(k, np.zeros(self.info.shape[1:], dtype=self.dtype, order="F"))
+        return np.asarray(self._potrs(L, self.eta[k], lower=1)[0], dtype=np.float64)
 
     def information(self, k: int) -> npt.NDArray[np.float64]:
         """The full symmetric ``Y_k`` (float64)."""

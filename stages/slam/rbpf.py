@@ -329,6 +329,16 @@ class ParticleMaps(Protocol):
     def select(self, indices: npt.NDArray[np.int64]) -> None: ...
 
 
+def weigh_and_update(maps: ParticleMaps, poses: F64, samples: BeamSamples) -> F64:
+    """``maps.log_likelihood`` then ``maps.update`` on the same poses, fused where the model offers it."""
+    fused = getattr(maps, "weigh_and_update", None)
+    if fused is not None:
+        return np.asarray(fused(poses, samples))
+    ll = maps.log_likelihood(poses, samples)
+    maps.update(poses, samples)
+    return ll
+
+
 class HilbertParticleMaps:
     """Every particle's Hilbert-GP weight posterior (eq. 20), stacked for batched products.
 
@@ -353,7 +363,7 @@ class HilbertParticleMaps:
         form: Literal["information", "covariance"] = "information",
         arrays: tuple[F64, ...] | None = None,
     ) -> None:
-        """``arrays``: existing stacks to work on in place: ``(theta, info, chol)`` (information form) or
+        """``arrays``: existing stacks to work on in place: ``(theta, info, eta)`` (information form) or
         ``(theta, cov)`` (covariance form, lower triangles)."""
         self.basis = basis
         self.noise_variance = noise_variance
@@ -372,8 +382,10 @@ class HilbertParticleMaps:
         else:
             self.cstack = StackedCovariance(self.prior_diag, n_particles, self.dtype,
                                             array=None if arrays is None else arrays[1])
+        #: map means; in the information form, those the last weighting used (before that scan's update)
         self.theta = np.zeros((n_particles, basis.M), dtype=self.dtype) if arrays is None else arrays[0]
         self._cache: tuple[Any, ...] | None = None
+        self._updated = False  # the cached scan's update is already applied (fused information step)
 
     @property
     def cov(self) -> F64 | None:
@@ -390,19 +402,29 @@ class HilbertParticleMaps:
     def map_of(self, k: int) -> tuple[F64, F64]:
         """Mean and covariance of particle k's map (float64)."""
         if self.stack is not None:
-            return self.theta[k].astype(np.float64), hm.covariance_from_information(self.stack.lower_factor(k))
+            return self.stack.mean(k), hm.covariance_from_information(self.stack.lower_factor(k))
         assert self.cstack is not None
         return self.theta[k].astype(np.float64), self.cstack.full(k)
 
-    def _products(self, poses: F64, samples: BeamSamples) -> tuple[Any, ...]:
-        """``(phi, phi_t, jac, jac_t, ring)`` of the scan, transformed by one call per particle."""
+    def _cached(self, poses: F64, samples: BeamSamples) -> tuple[Any, ...] | None:
+        """The cached products of this scan at these poses, if any."""
         c = self._cache
-        if c is not None and c[0] is poses and c[1] is samples:
-            return c[2:]
+        return c[2:] if c is not None and c[0] is poses and c[1] is samples else None
+
+    def _products(self, poses: F64, samples: BeamSamples, fuse_update: bool = False) -> tuple[Any, ...]:
+        """``(phi, phi_t, jac, jac_t, ring)`` of the scan, transformed by one call per particle.
+
+        Information form: the same per-particle pass factors the map, solves its mean into ``theta``
+        and, with ``fuse_update`` (Kalman), applies the scan's update (eq. 15-19) right after.
+        """
+        c = self._cached(poses, samples)
+        if c is not None:
+            return c
         phi = hm.features(self.basis, to_world(poses, samples.points), dtype=self.dtype)
         w = self.weighting
         Np, N = phi.shape[:2]
-        jac = jac_t = ring = None
+        jac = ring = None
+        extra: F64 | None = None
         pos = samples.labels > 0
         if w.use_variance and w.endpoint_tolerance > 0 and np.any(pos):
             if w.et_variance == "taylor":
@@ -412,14 +434,22 @@ class HilbertParticleMaps:
                 offs = stencil_offsets(w.endpoint_tolerance, w.ring_points, w.rings)[1:]
                 q = to_world(poses, samples.points[pos])[:, :, None, :] + offs
                 extra = hm.features(self.basis, q.reshape(Np, -1, 2), dtype=self.dtype)
-            both = self.metric.transform(np.concatenate([phi, extra], axis=1))
-            phi_t, extra_t = both[:, :N], both[:, N:]
-            if jac is not None:
-                jac_t = extra_t.reshape(jac.shape)
-            else:
-                ring = (extra, extra_t)
+        rows = phi if extra is None else np.concatenate([phi, extra], axis=1)
+        if self.stack is not None:
+            s2 = self.noise_variance
+            fuse = fuse_update and self.update_kind == "kalman"
+            whiten = w.use_variance or self.update_kind == "laplace"  # mean-only Kalman needs no transform
+            self.theta, out = self.stack.scan(
+                rows if whiten else rows[:, :0], gram=phi if fuse else None, gram_scale=1.0 / s2,
+                eta_coef=np.broadcast_to(samples.labels.astype(self.dtype) / s2, (Np, N)) if fuse else None)
+            self._updated = fuse
+            both = out if whiten else rows
         else:
-            phi_t = self.metric.transform(phi)
+            both = self.metric.transform(rows)
+        phi_t, extra_t = both[:, :N], both[:, N:]
+        jac_t = None if jac is None else extra_t.reshape(jac.shape)
+        if extra is not None and jac is None:
+            ring = (extra, extra_t)
         self._cache = (poses, samples, phi, phi_t, jac, jac_t, ring)
         return phi, phi_t, jac, jac_t, ring
 
@@ -430,17 +460,30 @@ class HilbertParticleMaps:
         return hilbert_log_likelihood(self.basis, self.theta, self.metric, poses, samples, self.weighting,
                                       phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring)
 
+    def weigh_and_update(self, poses: F64, samples: BeamSamples) -> F64:
+        """``log_likelihood`` then ``update`` on the same poses (the RBPF step), in one pass over the maps
+        where the form allows it (information form, Kalman update)."""
+        if samples.n == 0:
+            return np.zeros(len(poses))
+        phi, phi_t, jac, jac_t, ring = self._products(poses, samples, fuse_update=True)
+        ll = hilbert_log_likelihood(self.basis, self.theta, self.metric, poses, samples, self.weighting,
+                                    phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring)
+        self.update(poses, samples)
+        return ll
+
     def update(self, poses: F64, samples: BeamSamples) -> None:
         if samples.n == 0:
             return
-        phi, phi_t = self._products(poses, samples)[:2]
         labels = samples.labels.astype(self.dtype)
         if self.stack is not None:
-            self._update_information(self.stack, phi, phi_t, labels)
+            if not (self._cached(poses, samples) is not None and self._updated):
+                self._update_information(self.stack, poses, samples, labels)
         else:
             assert self.cstack is not None
+            phi, phi_t = self._products(poses, samples)[:2]
             self._update_covariance(self.cstack, phi, phi_t, labels)
         self._cache = None
+        self._updated = False
 
     def _update_covariance(self, st: StackedCovariance, phi: F64, A: F64, labels: F64) -> None:
         """eq. 15-19 with ``A = H^T cov``: ``S = R R^T``, ``W = R^-1 A``, ``cov -= W^T W`` (syrk)."""
@@ -466,22 +509,23 @@ class HilbertParticleMaps:
             self.theta += np.einsum("knm,kn->km", A, a.astype(self.dtype))
         st.downdate(W)
 
-    def _update_information(self, st: StackedInformation, phi: F64, phi_t: F64, labels: F64) -> None:
+    def _update_information(self, st: StackedInformation, poses: F64, samples: BeamSamples, labels: F64) -> None:
+        s2 = self.noise_variance
         if self.update_kind == "kalman":
-            # eq. 15-19 in information form: Y += H H^T / s2; theta += Y^-1 H (z - H^T theta) / s2
-            st.add_gram(phi, 1.0 / self.noise_variance)
-            st.factorize()
-            innov = labels - np.einsum("knm,km->kn", phi, self.theta)
-            self.theta += st.solve(np.einsum("knm,kn->km", phi, innov) / self.noise_variance)
-        else:
-            # Appendix: mode on the latent values with K = X X^T (X = L^-1 H), then Y += H W H^T
-            K = np.matmul(phi_t, np.swapaxes(phi_t, -1, -2)).astype(np.float64)
-            m = np.einsum("knm,km->kn", phi, self.theta)
-            f, w = hm.laplace_mode(K, m, labels, self.laplace_iterations)
-            a = (labels + 1.0) / 2.0 - hm.sigmoid(f)
-            self.theta += st.solve(np.einsum("knm,kn->km", phi, a.astype(self.dtype)))  # cov_old H a
-            st.add_gram(phi, w.astype(self.dtype))
-            st.factorize()
+            # eq. 15-19 in information form: Y += H H^T / s2, eta += H z / s2 (then theta = Y^-1 eta)
+            c = self._cached(poses, samples)
+            phi = c[0] if c is not None else hm.features(self.basis, to_world(poses, samples.points), dtype=self.dtype)
+            st.add(phi, 1.0 / s2, np.broadcast_to(labels / s2, phi.shape[:2]))
+            return
+        # Appendix: mode on the latent values with K = X X^T (X = L^-1 H) and prior mean m = H^T theta;
+        # theta' = theta + cov H a and Y' = Y + H W H^T give eta' = eta + H (a + W m + W K a)
+        phi, phi_t = (self._cached(poses, samples) or self._products(poses, samples))[:2]
+        K = np.matmul(phi_t, np.swapaxes(phi_t, -1, -2)).astype(np.float64)
+        m = np.einsum("knm,km->kn", phi, self.theta).astype(np.float64)
+        f, w = hm.laplace_mode(K, m, labels, self.laplace_iterations)
+        a = (labels + 1.0) / 2.0 - hm.sigmoid(f)
+        coef = a + w * (m + np.einsum("kij,kj->ki", K, a))
+        st.add(phi, w.astype(self.dtype), coef.astype(self.dtype))
 
     def select(self, indices: npt.NDArray[np.int64]) -> None:
         """Survivors after resampling; fancy indexing copies, so duplicates never share memory."""
@@ -573,8 +617,8 @@ class RBPF:
         """One iteration of Algorithm 1; ``observer(self, best)`` sees the maps before resampling."""
         if not first:
             self.poses = propagate(self.poses, u, self.noise, self.rng)
-        self.logw = self.logw + self.maps.log_likelihood(self.poses, samples)  # eq. 22, prior maps
-        self.maps.update(self.poses, samples)  # eq. 15 (after weighting)
+        # eq. 22 against the prior maps, then eq. 15 (the update does not depend on the weights)
+        self.logw = self.logw + weigh_and_update(self.maps, self.poses, samples)
         w = self.weights()
         self.logw = np.log(np.maximum(w, np.finfo(np.float64).tiny))  # keep them normalised
         best = int(np.argmax(w))
