@@ -279,3 +279,45 @@ def test_stacked_covariance_stays_symmetric_pd_over_thousands_of_updates() -> No
         assert np.linalg.eigvalsh(cov).min() > 0
         np.testing.assert_allclose(cov, i.map_of(k)[1], rtol=1e-6, atol=1e-9 * np.abs(cov).max())
         np.testing.assert_allclose(c.theta[k], i.map_of(k)[0], rtol=1e-6, atol=1e-8)
+
+
+def test_select_rows_equals_fancy_indexing_and_copies() -> None:
+    """In-place resampling of a stack (only changed rows copied) against ``a[idx]``, for index arrays from
+    every resampler and adversarial permutations with duplicates."""
+    from stages.slam.particle_linalg import select_rows
+
+    rng = np.random.default_rng(11)
+    cases = [np.array([1, 1, 2, 3]), np.array([0, 0, 1, 2]), np.array([3, 2, 1, 0]), np.array([2, 0, 0, 1]),
+             np.arange(6)]
+    for kind in ("systematic", "stratified", "multinomial"):
+        for _ in range(20):
+            cases.append(RESAMPLERS[kind](rng.dirichlet(np.full(30, 0.3)), rng))
+    cases += [rng.integers(0, 30, 30) for _ in range(20)]
+    for idx in cases:
+        a = rng.standard_normal((len(idx), 3, 2))
+        ref = a[idx]
+        select_rows(a, idx)
+        np.testing.assert_array_equal(a, ref)
+    with pytest.raises(ValueError, match="indices"):
+        select_rows(np.zeros((3, 2)), np.array([0, 1]))
+
+
+@pytest.mark.parametrize("weighting", [HilbertWeighting(et_variance="taylor"), HilbertWeighting(et_variance="exact"),
+                                       HilbertWeighting(use_variance=False), HilbertWeighting(endpoint_tolerance=0.0)])
+def test_fused_blocked_step_equals_weight_then_update(weighting: HilbertWeighting) -> None:
+    """``weigh_and_update`` (information form: one pass, blocks of particles) against ``log_likelihood``
+    followed by ``update`` on the unblocked maps."""
+    rng = np.random.default_rng(12)
+    b = hm.make_basis([8.0, 8.0], [0.0, 0.0], 64)
+    fused = HilbertParticleMaps(b, 5, 1.5, 16.0, 0.36, weighting, form="information")
+    fused.block_bytes = 1  # one particle per block
+    plain = HilbertParticleMaps(b, 5, 1.5, 16.0, 0.36, weighting, form="information")
+    for _ in range(15):
+        poses = np.column_stack([rng.uniform(-2, 2, (5, 2)), rng.uniform(-3, 3, 5)])
+        s = sample_beams(rng.uniform(-4, 4, (int(rng.integers(0, 7)), 2)), [0.1, 0.0], 1.0, 5.0)
+        ll = fused.weigh_and_update(poses, s)
+        np.testing.assert_allclose(ll, plain.log_likelihood(poses, s), rtol=1e-10, atol=1e-10)
+        plain.update(poses, s)
+    for k in range(5):
+        np.testing.assert_allclose(fused.map_of(k)[0], plain.map_of(k)[0], atol=1e-10)
+        np.testing.assert_allclose(fused.map_of(k)[1], plain.map_of(k)[1], atol=1e-10)

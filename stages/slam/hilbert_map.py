@@ -112,6 +112,25 @@ def prior(
     return theta, cov
 
 
+def sin_cos_multiples(theta: npt.ArrayLike, m: int) -> tuple[FloatArray, FloatArray]:
+    """``sin(k theta)`` and ``cos(k theta)`` for ``k = 1..m``, shape ``(..., m)``.
+
+    One complex exponential and ``m - 1`` complex products (``e^{ik theta} = e^{i(k-1) theta} e^{i theta}``,
+    error about ``k`` ulp) instead of ``2 m`` transcendental calls: an order of magnitude faster for the
+    eigenfunction tables, which dominate the cost of building features.
+    """
+    t = np.asarray(theta, dtype=np.float64)
+    e = np.exp(1j * t.ravel())
+    E = np.empty((m, e.size), dtype=np.complex128)  # k-major: every product is one contiguous pass
+    if m:
+        E[0] = e
+    for k in range(1, m):
+        np.multiply(E[k - 1], e, out=E[k])
+    S = np.ascontiguousarray(E.imag.T).reshape(*t.shape, m)
+    C = np.ascontiguousarray(E.real.T).reshape(*t.shape, m)
+    return S, C
+
+
 def axis_tables(
     basis: HilbertBasis, points: npt.ArrayLike, derivative: bool = False
 ) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray | None]:
@@ -129,37 +148,57 @@ def axis_tables(
     w1 = np.pi * np.arange(1, m1 + 1) / (2.0 * basis.half_widths[0])
     w2 = np.pi * np.arange(1, m2 + 1) / (2.0 * basis.half_widths[1])
     scale = (inside / np.sqrt(basis.half_widths[0] * basis.half_widths[1]))[..., None]
-    u1, u2 = x[..., 0:1] * w1, x[..., 1:2] * w2
-    a, b = np.sin(u1) * scale, np.sin(u2)
+    s1, c1 = sin_cos_multiples(x[..., 0] * w1[0], m1)
+    s2, c2 = sin_cos_multiples(x[..., 1] * w2[0], m2)
+    a, b = s1 * scale, s2
     if not derivative:
         return a, b, None, None
-    return a, b, np.cos(u1) * w1 * scale, np.cos(u2) * w2
+    return a, b, c1 * (w1 * scale), c2 * w2
 
 
-def _combine(basis: HilbertBasis, a: FloatArray, b: FloatArray) -> FloatArray:
+def _combine(basis: HilbertBasis, a: FloatArray, b: FloatArray, out: FloatArray | None = None) -> FloatArray:
+    """Tensor products of the axis tables, written into ``out (..., M)`` when given."""
+    lead = a.shape[:-1]
     if basis.kind == "tensor":
-        return (a[..., :, None] * b[..., None, :]).reshape(*a.shape[:-1], a.shape[-1] * b.shape[-1])
-    return a[..., basis.indices[:, 0] - 1] * b[..., basis.indices[:, 1] - 1]
+        if out is None:
+            out = np.empty((*lead, a.shape[-1] * b.shape[-1]), dtype=np.result_type(a, b))
+        np.multiply(a[..., :, None], b[..., None, :], out=np.reshape(out, (*lead, a.shape[-1], b.shape[-1]),
+                                                                      copy=False))
+        return out
+    prod = a[..., basis.indices[:, 0] - 1] * b[..., basis.indices[:, 1] - 1]
+    if out is None:
+        return prod
+    out[...] = prod
+    return out
 
 
-def features(basis: HilbertBasis, points: npt.ArrayLike, dtype: npt.DTypeLike = np.float64) -> FloatArray:
+def features(basis: HilbertBasis, points: npt.ArrayLike, dtype: npt.DTypeLike = np.float64,
+             out: FloatArray | None = None) -> FloatArray:
     """``Phi(p)``, shape ``(..., M)`` (eq. 6, 9); zero outside the domain (Dirichlet boundary).
 
-    Built from per-axis sine tables: O(N (sqrt(M) + M)) and one pass over the output.
+    Built from per-axis sine tables: O(N (sqrt(M) + M)) and one pass over the output (``out``, if given).
     """
     a, b, _, _ = axis_tables(basis, points)
-    dt = np.dtype(dtype)
-    return _combine(basis, a.astype(dt, copy=False), b.astype(dt, copy=False))
+    dt = np.dtype(dtype) if out is None else out.dtype
+    return _combine(basis, a.astype(dt, copy=False), b.astype(dt, copy=False), out)
+
+
+def feature_gradient_rows(basis: HilbertBasis, points: npt.ArrayLike, dtype: npt.DTypeLike = np.float64,
+                          out: FloatArray | None = None) -> FloatArray:
+    """``d Phi / d p`` as rows, shape ``(..., 2, M)`` (x then y derivative); zero outside the domain."""
+    a, b, da, db = axis_tables(basis, points, derivative=True)
+    assert da is not None and db is not None
+    dt = np.dtype(dtype) if out is None else out.dtype
+    if out is None:
+        out = np.empty((*a.shape[:-1], 2, basis.M), dtype=dt)
+    _combine(basis, da.astype(dt, copy=False), b.astype(dt, copy=False), out[..., 0, :])
+    _combine(basis, a.astype(dt, copy=False), db.astype(dt, copy=False), out[..., 1, :])
+    return out
 
 
 def feature_gradients(basis: HilbertBasis, points: npt.ArrayLike, dtype: npt.DTypeLike = np.float64) -> FloatArray:
     """``d Phi / d p``, shape ``(..., M, 2)``; zero outside the domain."""
-    a, b, da, db = axis_tables(basis, points, derivative=True)
-    assert da is not None and db is not None
-    dt = np.dtype(dtype)
-    gx = _combine(basis, da.astype(dt, copy=False), b.astype(dt, copy=False))
-    gy = _combine(basis, a.astype(dt, copy=False), db.astype(dt, copy=False))
-    return np.stack([gx, gy], axis=-1)
+    return np.swapaxes(feature_gradient_rows(basis, points, dtype), -1, -2)
 
 
 def mean_at(basis: HilbertBasis, theta: FloatArray, points: npt.ArrayLike) -> FloatArray:

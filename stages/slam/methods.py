@@ -106,12 +106,13 @@ def step_flops(form: str, n: float, b: float, M: int, w: HilbertWeighting) -> fl
 
 
 def choose_form(cfg: SlamConfig, method: str, scans: Sequence[BeamSamples], M: int,
-                info_efficiency: float = 0.65) -> Literal["information", "covariance"]:
+                info_efficiency: float = 0.75) -> Literal["information", "covariance"]:
     """``auto``: the form with the smaller modelled cost at the sequence's mean samples per scan.
 
-    The information form's kernels (potrf, trsm on 256 x 256) run at about ``info_efficiency`` of the
-    rate of the covariance form's (symm, syrk, small products), measured side by side at 50 and 120
-    samples per scan (N_p = 200, M = 256, 2 workers); the crossover is near 80 samples per scan.
+    The information form's kernels (potrf, trsm on 256 x 256, one pass per scan) run at about
+    ``info_efficiency`` of the rate of the covariance form's (symm, syrk, small products), measured
+    side by side at 12, 61 and 180 samples per scan (N_p = 200, M = 256, 2 workers: 0.074 / 0.163 /
+    0.334 s per scan against 0.054 / 0.162 / 0.666); the crossover is near 65 samples per scan.
     """
     if cfg.map_form != "auto":
         return cfg.map_form

@@ -23,7 +23,7 @@ import numpy.typing as npt
 
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.particle_linalg import StackedCovariance, StackedInformation
+from stages.slam.particle_linalg import StackedCovariance, StackedInformation, select_rows
 from stages.slam.rbpf import HilbertParticleMaps, HilbertWeighting
 
 F64 = npt.NDArray[np.floating[Any]]
@@ -187,9 +187,9 @@ class ParallelHilbertMaps:
         """Done by the workers together with the weights."""
 
     def select(self, indices: npt.NDArray[np.int64]) -> None:
-        """Permute the shared maps (``a[idx]`` is a copy, then written back)."""
+        """Resample the shared maps in place (only the rows that change are copied)."""
         for a in self._stacks:
-            a[...] = a[indices]
+            select_rows(a, indices)
 
     def map_of(self, k: int) -> tuple[F64, F64]:
         """Mean and covariance of particle k's map (float64)."""

@@ -22,6 +22,25 @@ from scipy.linalg.lapack import get_lapack_funcs
 FloatArray = npt.NDArray[np.floating[Any]]
 
 
+def select_rows(a: npt.NDArray[Any], indices: npt.ArrayLike) -> None:
+    """``a[:] = a[indices]`` in place, copying only the rows that change (resampling keeps most of
+    the survivors where they are) and holding only overwritten sources in a temporary, instead of a
+    full copy of the stack. Duplicates never share memory: each row is its own copy."""
+    idx = np.asarray(indices, dtype=np.int64)
+    if idx.shape != (len(a),):
+        raise ValueError(f"need {len(a)} indices, got shape {idx.shape}")
+    dest = np.flatnonzero(idx != np.arange(len(idx)))
+    if dest.size == 0:
+        return
+    src = idx[dest]
+    clobbered = np.isin(src, dest)
+    saved_ids = np.unique(src[clobbered])
+    saved = a[saved_ids]
+    slot = np.searchsorted(saved_ids, src)
+    for d, s, c, j in zip(dest.tolist(), src.tolist(), clobbered.tolist(), slot.tolist(), strict=True):
+        a[d] = saved[j] if c else a[s]
+
+
 class StackedInformation:
     """Information matrices ``Y_k = cov_k^-1`` and vectors ``eta_k = Y_k theta_k`` of ``Np`` maps.
 
@@ -48,12 +67,17 @@ class StackedInformation:
             self.info = np.zeros((n_maps, M, M), dtype=self.dtype)
             self.info[:, np.arange(M), np.arange(M)] = d.astype(self.dtype)
             self.eta = np.zeros((n_maps, M), dtype=self.dtype)
-        self._syrk, self._trsm = get_blas_funcs(("syrk", "trsm"), dtype=self.dtype)
-        self._potrf, self._potrs = get_lapack_funcs(("potrf", "potrs"), dtype=self.dtype)
+        self._syrk, self._trsm, self._trsv = get_blas_funcs(("syrk", "trsm", "trsv"), dtype=self.dtype)
+        self._potrf, = get_lapack_funcs(("potrf",), dtype=self.dtype)
 
     @property
     def n(self) -> int:
         return int(self.info.shape[0])
+
+    def _solve(self, L: FloatArray, b: FloatArray) -> FloatArray:
+        """``Y^-1 b = L^-T L^-1 b`` (two BLAS trsv; LAPACK potrs costs twice as much at this size)."""
+        u = self._trsv(L, b, lower=1)
+        return self._trsv(L, u, lower=1, trans=1, overwrite_x=1)
 
     def _factor(self, k: int, out: FloatArray) -> FloatArray:
         """``L_k`` (lower, Fortran order; the strict upper triangle of ``out`` is left as it was)."""
@@ -69,28 +93,39 @@ class StackedInformation:
         gram: FloatArray | None = None,
         gram_scale: float = 1.0,
         eta_coef: FloatArray | None = None,
+        out: FloatArray | None = None,
+        first: int = 0,
     ) -> tuple[FloatArray, FloatArray]:
         """Per map, before any update: ``theta_k = Y_k^-1 eta_k`` and rows ``L_k^-1 v`` of ``rows (Np, K, M)``
         (then ``v^T cov_k v = ||L_k^-1 v||^2``); then, if ``gram (Np, N, M)`` is given,
-        ``Y_k += gram_scale gram_k^T gram_k`` and ``eta_k += gram_k^T eta_coef_k``."""
+        ``Y_k += gram_scale gram_k^T gram_k`` and ``eta_k += gram_k^T eta_coef_k``.
+
+        ``out`` (C-contiguous, shape of ``rows``) receives the whitened rows; ``rows`` and ``gram`` need
+        only be C-contiguous per map (views into a larger buffer are fine) and are not modified.
+        The rows belong to maps ``first, first + 1, ...`` (a block of particles at a time keeps the
+        scan's rows in cache).
+        """
         rows = np.asarray(rows, dtype=self.dtype)
-        Np, M = self.n, self.info.shape[-1]
+        Np, M = len(rows), self.info.shape[-1]
         theta = np.empty((Np, M), dtype=self.dtype)
-        out = np.array(rows, dtype=self.dtype, order="C", copy=True)
+        if out is None:
+            out = np.empty(rows.shape, dtype=self.dtype)
         if gram is not None:
-            gram = np.ascontiguousarray(gram, dtype=self.dtype)
+            gram = np.asarray(gram, dtype=self.dtype)
             assert eta_coef is not None
             coef = np.asarray(eta_coef, dtype=self.dtype)
         L = np.zeros((M, M), dtype=self.dtype, order="F")
-        potrs, trsm, syrk = self._potrs, self._trsm, self._syrk
+        trsm, syrk = self._trsm, self._syrk
         for k in range(Np):
-            self._factor(k, L)
-            theta[k], _ = potrs(L, self.eta[k], lower=1)
+            j = first + k
+            self._factor(j, L)
+            theta[k] = self._solve(L, self.eta[j])
             if out.shape[1]:
+                out[k] = rows[k]  # copied while in cache, then solved in place
                 trsm(1.0, L, out[k].T, side=0, lower=1, overwrite_b=1)
             if gram is not None and gram.shape[1]:
-                syrk(gram_scale, gram[k].T, beta=1.0, c=self.info[k].T, trans=0, lower=1, overwrite_c=1)
-                self.eta[k] += coef[k] @ gram[k]
+                syrk(gram_scale, gram[k].T, beta=1.0, c=self.info[j].T, trans=0, lower=1, overwrite_c=1)
+                self.eta[j] += coef[k] @ gram[k]
         return theta, out
 
     def whiten(self, V: FloatArray) -> FloatArray:
@@ -111,9 +146,9 @@ class StackedInformation:
             syrk(1.0, scaled[k].T, beta=1.0, c=self.info[k].T, trans=0, lower=1, overwrite_c=1)
 
     def select(self, indices: npt.NDArray[np.int64]) -> None:
-        """Keep maps ``indices`` (fancy indexing copies: duplicates never share memory)."""
-        self.info = self.info[indices]
-        self.eta = self.eta[indices]
+        """Keep maps ``indices`` (in place; duplicates never share memory)."""
+        select_rows(self.info, indices)
+        select_rows(self.eta, indices)
 
     def lower_factor(self, k: int) -> npt.NDArray[np.float64]:
         """``L_k`` as a C-ordered float64 lower-triangular matrix."""
@@ -123,7 +158,7 @@ class StackedInformation:
     def mean(self, k: int) -> npt.NDArray[np.float64]:
         """``theta_k = Y_k^-1 eta_k`` (float64)."""
         L = self._factor(k, np.zeros(self.info.shape[1:], dtype=self.dtype, order="F"))
-        return np.asarray(self._potrs(L, self.eta[k], lower=1)[0], dtype=np.float64)
+        return np.asarray(self._solve(L, self.eta[k]), dtype=np.float64)
 
     def information(self, k: int) -> npt.NDArray[np.float64]:
         """The full symmetric ``Y_k`` (float64)."""
@@ -176,7 +211,7 @@ class StackedCovariance:
             syrk(-1.0, W[k].T, beta=1.0, c=self.cov[k].T, trans=0, lower=1, overwrite_c=1)
 
     def select(self, indices: npt.NDArray[np.int64]) -> None:
-        self.cov = self.cov[indices]
+        select_rows(self.cov, indices)
 
     def full(self, k: int) -> npt.NDArray[np.float64]:
         """The full symmetric ``cov_k`` (float64)."""

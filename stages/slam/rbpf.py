@@ -211,10 +211,20 @@ def log_occupancy_terms(mean: F64, var: F64 | None) -> tuple[F64, F64]:
     return hm.log_sigmoid(x), hm.log_sigmoid(-x)
 
 
-def endpoint_jacobians(basis: hm.HilbertBasis, poses: F64, samples: BeamSamples, dtype: npt.DTypeLike) -> F64:
+def endpoint_index(samples: BeamSamples) -> npt.NDArray[np.int64] | slice:
+    """Positions of the endpoints among the samples: a slice (views, not copies, of per-sample arrays)
+    when they are contiguous, as :func:`sample_beams` writes them."""
+    pos = np.flatnonzero(samples.labels > 0)
+    if pos.size and pos[-1] - pos[0] + 1 == pos.size:
+        return slice(int(pos[0]), int(pos[-1]) + 1)
+    return pos
+
+
+def endpoint_jacobians(basis: hm.HilbertBasis, poses: F64, samples: BeamSamples, dtype: npt.DTypeLike,
+                       out: F64 | None = None) -> F64:
     """``d Phi / d p`` at every endpoint, as rows ``(Np, B, 2, M)`` (x then y derivative)."""
     ends_w = to_world(poses, samples.points[samples.labels > 0])
-    return np.swapaxes(hm.feature_gradients(basis, ends_w, dtype=dtype), -1, -2)
+    return hm.feature_gradient_rows(basis, ends_w, dtype=dtype, out=out)
 
 
 def hilbert_log_likelihood(
@@ -281,7 +291,7 @@ def _endpoint_tolerant_log_o(
     endpoint's own sample. Means at the ring points are exact; variances exact or Taylor.
     """
     dtype = theta.dtype
-    pos = np.flatnonzero(samples.labels > 0)
+    pos = endpoint_index(samples)
     ends_w = to_world(poses, samples.points[pos])  # (Np, B, 2)
     offs = stencil_offsets(weighting.endpoint_tolerance, weighting.ring_points, weighting.rings)[1:]  # (K, 2)
     q = ends_w[:, :, None, :] + offs  # (Np, B, K, 2)
@@ -386,6 +396,17 @@ class HilbertParticleMaps:
         self.theta = np.zeros((n_particles, basis.M), dtype=self.dtype) if arrays is None else arrays[0]
         self._cache: tuple[Any, ...] | None = None
         self._updated = False  # the cached scan's update is already applied (fused information step)
+        self._buffers: dict[str, F64] = {}
+        #: target size of one block of :meth:`weigh_and_update` (rows and whitened rows)
+        self.block_bytes = 16 * 2**20
+
+    def _workspace(self, name: str, shape: tuple[int, ...]) -> F64:
+        """A C-contiguous scratch array of ``shape``, reusing the memory of the last scans'."""
+        size = int(np.prod(shape))
+        buf = self._buffers.get(name)
+        if buf is None or buf.size < size:
+            buf = self._buffers[name] = np.empty(max(size, int(1.25 * size)), dtype=self.dtype)
+        return buf[:size].reshape(shape)
 
     @property
     def cov(self) -> F64 | None:
@@ -411,37 +432,54 @@ class HilbertParticleMaps:
         c = self._cache
         return c[2:] if c is not None and c[0] is poses and c[1] is samples else None
 
-    def _products(self, poses: F64, samples: BeamSamples, fuse_update: bool = False) -> tuple[Any, ...]:
+    def _products(self, poses: F64, samples: BeamSamples, fuse_update: bool = False,
+                  first: int | None = None) -> tuple[Any, ...]:
         """``(phi, phi_t, jac, jac_t, ring)`` of the scan, transformed by one call per particle.
 
         Information form: the same per-particle pass factors the map, solves its mean into ``theta``
         and, with ``fuse_update`` (Kalman), applies the scan's update (eq. 15-19) right after.
+        ``first``: ``poses`` are those of the block of particles starting there (not cached).
         """
-        c = self._cached(poses, samples)
+        c = self._cached(poses, samples) if first is None else None
         if c is not None:
             return c
-        phi = hm.features(self.basis, to_world(poses, samples.points), dtype=self.dtype)
         w = self.weighting
-        Np, N = phi.shape[:2]
-        jac = ring = None
-        extra: F64 | None = None
+        Np, N, M = len(poses), samples.n, self.basis.M
         pos = samples.labels > 0
-        if w.use_variance and w.endpoint_tolerance > 0 and np.any(pos):
+        B = int(np.count_nonzero(pos))
+        ring_offs = None
+        extra_rows = 0
+        if w.use_variance and w.endpoint_tolerance > 0 and B:
             if w.et_variance == "taylor":
-                jac = endpoint_jacobians(self.basis, poses, samples, self.dtype)
-                extra = jac.reshape(Np, -1, self.basis.M)
+                extra_rows = 2 * B
             else:
-                offs = stencil_offsets(w.endpoint_tolerance, w.ring_points, w.rings)[1:]
-                q = to_world(poses, samples.points[pos])[:, :, None, :] + offs
-                extra = hm.features(self.basis, q.reshape(Np, -1, 2), dtype=self.dtype)
-        rows = phi if extra is None else np.concatenate([phi, extra], axis=1)
+                ring_offs = stencil_offsets(w.endpoint_tolerance, w.ring_points, w.rings)[1:]
+                extra_rows = B * len(ring_offs)
+        # samples, then Jacobian or ring rows, in one reused buffer (fresh pages cost more than the fill)
+        rows = self._workspace("rows", (Np, N + extra_rows, M))
+        phi = hm.features(self.basis, to_world(poses, samples.points), out=rows[:, :N])
+        jac = ring = None
+        extra: F64 | None = rows[:, N:] if extra_rows else None
+        if extra is not None and ring_offs is None:
+            jac = endpoint_jacobians(self.basis, poses, samples, self.dtype,
+                                     out=np.reshape(extra, (Np, B, 2, M), copy=False))
+        elif extra is not None:
+            assert ring_offs is not None
+            q = to_world(poses, samples.points[pos])[:, :, None, :] + ring_offs
+            hm.features(self.basis, q.reshape(Np, -1, 2), out=extra)
         if self.stack is not None:
             s2 = self.noise_variance
             fuse = fuse_update and self.update_kind == "kalman"
             whiten = w.use_variance or self.update_kind == "laplace"  # mean-only Kalman needs no transform
-            self.theta, out = self.stack.scan(
+            theta, out = self.stack.scan(
                 rows if whiten else rows[:, :0], gram=phi if fuse else None, gram_scale=1.0 / s2,
-                eta_coef=np.broadcast_to(samples.labels.astype(self.dtype) / s2, (Np, N)) if fuse else None)
+                out=self._workspace("white", rows.shape) if whiten else None,
+                eta_coef=np.broadcast_to(samples.labels.astype(self.dtype) / s2, (Np, N)) if fuse else None,
+                first=first or 0)
+            if first is None:
+                self.theta = theta
+            else:
+                self.theta[first : first + Np] = theta
             self._updated = fuse
             both = out if whiten else rows
         else:
@@ -450,7 +488,7 @@ class HilbertParticleMaps:
         jac_t = None if jac is None else extra_t.reshape(jac.shape)
         if extra is not None and jac is None:
             ring = (extra, extra_t)
-        self._cache = (poses, samples, phi, phi_t, jac, jac_t, ring)
+        self._cache = (poses, samples, phi, phi_t, jac, jac_t, ring) if first is None else None
         return phi, phi_t, jac, jac_t, ring
 
     def log_likelihood(self, poses: F64, samples: BeamSamples) -> F64:
@@ -461,15 +499,38 @@ class HilbertParticleMaps:
                                       phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring)
 
     def weigh_and_update(self, poses: F64, samples: BeamSamples) -> F64:
-        """``log_likelihood`` then ``update`` on the same poses (the RBPF step), in one pass over the maps
-        where the form allows it (information form, Kalman update)."""
+        """``log_likelihood`` then ``update`` on the same poses (the RBPF step).
+
+        Information form with the Kalman update: one pass over the maps, a block of particles at a
+        time, so that each block's rows, whitened rows and maps stay in cache from the features to the
+        weights (memory traffic, not arithmetic, is what the unblocked version waits on).
+        """
         if samples.n == 0:
             return np.zeros(len(poses))
-        phi, phi_t, jac, jac_t, ring = self._products(poses, samples, fuse_update=True)
-        ll = hilbert_log_likelihood(self.basis, self.theta, self.metric, poses, samples, self.weighting,
-                                    phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring)
-        self.update(poses, samples)
-        return ll
+        if self.stack is None or self.update_kind != "kalman":
+            ll = self.log_likelihood(poses, samples)
+            self.update(poses, samples)
+            return ll
+        out = np.empty(len(poses))
+        step = self.block_size(samples)
+        for lo in range(0, len(poses), step):
+            p = poses[lo : lo + step]
+            phi, phi_t, jac, jac_t, ring = self._products(p, samples, fuse_update=True, first=lo)
+            out[lo : lo + step] = hilbert_log_likelihood(
+                self.basis, self.theta[lo : lo + step], self.metric, p, samples, self.weighting,
+                phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring)
+        self._cache = None
+        self._updated = False
+        return out
+
+    def block_size(self, samples: BeamSamples) -> int:
+        """Particles per block of :meth:`weigh_and_update`: about ``block_bytes`` of rows (samples and
+        tolerance rows, and their whitened copy)."""
+        w = self.weighting
+        b = int(np.count_nonzero(samples.labels > 0)) if w.use_variance and w.endpoint_tolerance > 0 else 0
+        rows = samples.n + b * (2 if w.et_variance == "taylor" else w.ring_points * w.rings)
+        per = 2 * rows * self.basis.M * self.dtype.itemsize
+        return max(1, int(self.block_bytes // max(per, 1)))
 
     def update(self, poses: F64, samples: BeamSamples) -> None:
         if samples.n == 0:
@@ -528,7 +589,7 @@ class HilbertParticleMaps:
         st.add(phi, w.astype(self.dtype), coef.astype(self.dtype))
 
     def select(self, indices: npt.NDArray[np.int64]) -> None:
-        """Survivors after resampling; fancy indexing copies, so duplicates never share memory."""
+        """Survivors after resampling (in place; duplicates never share memory)."""
         self.theta = self.theta[indices]
         if self.stack is not None:
             self.stack.select(indices)
