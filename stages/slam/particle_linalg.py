@@ -95,21 +95,26 @@ class StackedInformation:
         eta_coef: FloatArray | None = None,
         out: FloatArray | None = None,
         first: int = 0,
-    ) -> tuple[FloatArray, FloatArray]:
-        """Per map, before any update: ``theta_k = Y_k^-1 eta_k`` and rows ``L_k^-1 v`` of ``rows (Np, K, M)``
-        (then ``v^T cov_k v = ||L_k^-1 v||^2``); then, if ``gram (Np, N, M)`` is given,
-        ``Y_k += gram_scale gram_k^T gram_k`` and ``eta_k += gram_k^T eta_coef_k``.
+        mean_rows: int = 0,
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Per map, before any update: ``theta_k = Y_k^-1 eta_k``, the means ``v^T theta_k`` of the first
+        ``mean_rows`` rows and rows ``L_k^-1 v`` of ``rows (Np, K, M)`` (then ``v^T cov_k v =
+        ||L_k^-1 v||^2``); if ``gram (Np, N, M)`` is given, also ``Y_k += gram_scale gram_k^T gram_k`` and
+        ``eta_k += gram_k^T eta_coef_k`` (the update reads ``gram`` before the rows are whitened, so
+        ``gram`` may be a view of ``rows``). Returns ``(theta, whitened rows, means)``.
 
-        ``out`` (C-contiguous, shape of ``rows``) receives the whitened rows; ``rows`` and ``gram`` need
-        only be C-contiguous per map (views into a larger buffer are fine) and are not modified.
-        The rows belong to maps ``first, first + 1, ...`` (a block of particles at a time keeps the
-        scan's rows in cache).
+        ``out`` (C-contiguous, shape of ``rows``) receives the whitened rows; ``out is rows`` whitens in
+        place. ``rows`` and ``gram`` need only be C-contiguous per map (views into a larger buffer are
+        fine). The rows belong to maps ``first, first + 1, ...`` (a block of particles at a time keeps
+        the scan's rows in cache).
         """
         rows = np.asarray(rows, dtype=self.dtype)
         Np, M = len(rows), self.info.shape[-1]
         theta = np.empty((Np, M), dtype=self.dtype)
         if out is None:
             out = np.empty(rows.shape, dtype=self.dtype)
+        inplace = out is rows
+        means = np.empty((Np, mean_rows), dtype=self.dtype)
         if gram is not None:
             gram = np.asarray(gram, dtype=self.dtype)
             assert eta_coef is not None
@@ -120,13 +125,16 @@ class StackedInformation:
             j = first + k
             self._factor(j, L)
             theta[k] = self._solve(L, self.eta[j])
-            if out.shape[1]:
-                out[k] = rows[k]  # copied while in cache, then solved in place
-                trsm(1.0, L, out[k].T, side=0, lower=1, overwrite_b=1)
+            if mean_rows:
+                means[k] = rows[k, :mean_rows] @ theta[k]
             if gram is not None and gram.shape[1]:
                 syrk(gram_scale, gram[k].T, beta=1.0, c=self.info[j].T, trans=0, lower=1, overwrite_c=1)
                 self.eta[j] += coef[k] @ gram[k]
-        return theta, out
+            if out.shape[1]:
+                if not inplace:
+                    out[k] = rows[k]  # copied while in cache, then solved in place
+                trsm(1.0, L, out[k].T, side=0, lower=1, overwrite_b=1)
+        return theta, out, means
 
     def whiten(self, V: FloatArray) -> FloatArray:
         """Rows ``L_k^-1 v`` for ``V (Np, K, M)`` (no update)."""

@@ -239,20 +239,24 @@ def hilbert_log_likelihood(
     jac: F64 | None = None,
     jac_t: F64 | None = None,
     ring: tuple[F64, F64] | None = None,
+    mean: F64 | None = None,
 ) -> F64:
     """Per-particle ``log Pr(z~[i] | x_k[i], D_k[i-1])`` (eq. 23-30), batched over particles.
 
     ``cov`` is the stack of covariances ``(Np, M, M)`` or a metric of the information form.
     ``phi`` ``(Np, N, M)``, ``phi_t`` (its metric transform) and, for the Taylor tolerance, the endpoint
     Jacobians ``jac (Np, B, 2, M)`` and their transform, or for the exact tolerance the ring points'
-    features ``(Np, B K, M)`` and their transform (``ring``), may be passed in when already computed.
+    features ``(Np, B K, M)`` and their transform (``ring``), may be passed in when already computed,
+    and so may the latent means ``mean (Np, N)`` (eq. 26). An information-form metric reads only the
+    transforms: then, with ``mean`` given, ``phi`` and the ring features are not read.
     """
     metric: Metric = CovarianceMetric(cov) if isinstance(cov, np.ndarray) else cov
     if samples.n == 0:
         return np.zeros(len(poses))
     if phi is None:
         phi = hm.features(basis, to_world(poses, samples.points), dtype=theta.dtype)
-    mean = np.einsum("knm,km->kn", phi, theta)
+    if mean is None:
+        mean = np.einsum("knm,km->kn", phi, theta)
     var = None
     if weighting.use_variance:
         if phi_t is None:
@@ -434,10 +438,12 @@ class HilbertParticleMaps:
 
     def _products(self, poses: F64, samples: BeamSamples, fuse_update: bool = False,
                   first: int | None = None) -> tuple[Any, ...]:
-        """``(phi, phi_t, jac, jac_t, ring)`` of the scan, transformed by one call per particle.
+        """``(phi, phi_t, jac, jac_t, ring, mean)`` of the scan, transformed by one call per particle.
 
         Information form: the same per-particle pass factors the map, solves its mean into ``theta``
-        and, with ``fuse_update`` (Kalman), applies the scan's update (eq. 15-19) right after.
+        and, with ``fuse_update`` (Kalman), applies the scan's update (eq. 15-19) right after; then the
+        rows are whitened in place (``phi`` and ``jac`` hold their transforms) and ``mean`` holds the
+        latent means of the samples (else None).
         ``first``: ``poses`` are those of the block of particles starting there (not cached).
         """
         c = self._cached(poses, samples) if first is None else None
@@ -471,11 +477,13 @@ class HilbertParticleMaps:
             s2 = self.noise_variance
             fuse = fuse_update and self.update_kind == "kalman"
             whiten = w.use_variance or self.update_kind == "laplace"  # mean-only Kalman needs no transform
-            theta, out = self.stack.scan(
+            # fused: the update reads the features first, so the rows are whitened in place
+            theta, out, mean = self.stack.scan(
                 rows if whiten else rows[:, :0], gram=phi if fuse else None, gram_scale=1.0 / s2,
-                out=self._workspace("white", rows.shape) if whiten else None,
+                out=(rows if fuse else self._workspace("white", rows.shape)) if whiten else None,
                 eta_coef=np.broadcast_to(samples.labels.astype(self.dtype) / s2, (Np, N)) if fuse else None,
-                first=first or 0)
+                first=first or 0, mean_rows=N if fuse and whiten else 0)
+            mean_out = mean if fuse and whiten else None
             if first is None:
                 self.theta = theta
             else:
@@ -484,19 +492,20 @@ class HilbertParticleMaps:
             both = out if whiten else rows
         else:
             both = self.metric.transform(rows)
+            mean_out = None
         phi_t, extra_t = both[:, :N], both[:, N:]
         jac_t = None if jac is None else extra_t.reshape(jac.shape)
         if extra is not None and jac is None:
             ring = (extra, extra_t)
-        self._cache = (poses, samples, phi, phi_t, jac, jac_t, ring) if first is None else None
-        return phi, phi_t, jac, jac_t, ring
+        self._cache = (poses, samples, phi, phi_t, jac, jac_t, ring, mean_out) if first is None else None
+        return phi, phi_t, jac, jac_t, ring, mean_out
 
     def log_likelihood(self, poses: F64, samples: BeamSamples) -> F64:
         if samples.n == 0:
             return np.zeros(len(poses))
-        phi, phi_t, jac, jac_t, ring = self._products(poses, samples)
+        phi, phi_t, jac, jac_t, ring, mean = self._products(poses, samples)
         return hilbert_log_likelihood(self.basis, self.theta, self.metric, poses, samples, self.weighting,
-                                      phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring)
+                                      phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring, mean=mean)
 
     def weigh_and_update(self, poses: F64, samples: BeamSamples) -> F64:
         """``log_likelihood`` then ``update`` on the same poses (the RBPF step).
@@ -515,10 +524,10 @@ class HilbertParticleMaps:
         step = self.block_size(samples)
         for lo in range(0, len(poses), step):
             p = poses[lo : lo + step]
-            phi, phi_t, jac, jac_t, ring = self._products(p, samples, fuse_update=True, first=lo)
+            phi, phi_t, jac, jac_t, ring, mean = self._products(p, samples, fuse_update=True, first=lo)
             out[lo : lo + step] = hilbert_log_likelihood(
                 self.basis, self.theta[lo : lo + step], self.metric, p, samples, self.weighting,
-                phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring)
+                phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring, mean=mean)
         self._cache = None
         self._updated = False
         return out
