@@ -321,3 +321,27 @@ def test_fused_blocked_step_equals_weight_then_update(weighting: HilbertWeightin
     for k in range(5):
         np.testing.assert_allclose(fused.map_of(k)[0], plain.map_of(k)[0], atol=1e-10)
         np.testing.assert_allclose(fused.map_of(k)[1], plain.map_of(k)[1], atol=1e-10)
+
+
+def test_information_scan_whitens_in_place_and_refuses_non_contiguous_output() -> None:
+    """``scan`` with ``out is rows`` equals the copying scan; an output whose maps are not C-contiguous
+    (trsm would solve a temporary copy) is refused."""
+    from stages.slam.particle_linalg import StackedInformation
+
+    rng = np.random.default_rng(13)
+    M = 16
+    A = rng.standard_normal((3, M, 2 * M))
+    st = StackedInformation(np.ones(M), 3)
+    st.info[...] = np.eye(M) + A @ np.swapaxes(A, 1, 2) / M
+    rows = rng.standard_normal((3, 5, M))
+    theta, white, _ = st.scan(rows)
+    for k in range(3):
+        L = np.linalg.cholesky(st.info[k])
+        np.testing.assert_allclose(white[k], np.linalg.solve(L, rows[k].T).T, atol=1e-12)
+    same = rows.copy()
+    _, white2, means = st.scan(same, out=same, mean_rows=2)
+    assert white2 is same
+    np.testing.assert_allclose(white2, white, atol=1e-13)
+    np.testing.assert_allclose(means, np.einsum("knm,km->kn", rows[:, :2], theta), atol=1e-12)
+    with pytest.raises(ValueError, match="C-contiguous"):
+        st.scan(rows, out=np.asfortranarray(np.empty_like(rows)))

@@ -114,6 +114,9 @@ class StackedInformation:
         if out is None:
             out = np.empty(rows.shape, dtype=self.dtype)
         inplace = out is rows
+        if out.shape != rows.shape or (out.size and out.strides[1:] != (M * out.itemsize, out.itemsize)):
+            # trsm solves out[k] in place: a copy made for Fortran would be written and dropped
+            raise ValueError(f"out must have the rows' shape {rows.shape} and C-contiguous maps")
         means = np.empty((Np, mean_rows), dtype=self.dtype)
         if gram is not None:
             gram = np.asarray(gram, dtype=self.dtype)
