@@ -194,7 +194,8 @@ class ParallelHilbertMaps:
     def map_of(self, k: int) -> tuple[F64, F64]:
         """Mean and covariance of particle k's map (float64)."""
         if self.stack is not None:
-            return self.stack.mean(k), hm.covariance_from_information(self.stack.lower_factor(k))
+            theta, L = self.stack.posterior(k)
+            return theta, hm.covariance_from_information(L)
         return self.theta[k].astype(np.float64), self.cstack.full(k)
 
     def close(self) -> None:

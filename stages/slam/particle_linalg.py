@@ -161,15 +161,11 @@ class StackedInformation:
         select_rows(self.info, indices)
         select_rows(self.eta, indices)
 
-    def lower_factor(self, k: int) -> npt.NDArray[np.float64]:
-        """``L_k`` as a C-ordered float64 lower-triangular matrix."""
+    def posterior(self, k: int) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """``theta_k = Y_k^-1 eta_k`` and ``L_k`` (C-ordered lower triangle), float64, from one factorisation."""
         L = self._factor(k, np.zeros(self.info.shape[1:], dtype=self.dtype, order="F"))
-        return np.ascontiguousarray(np.tril(L), dtype=np.float64)
-
-    def mean(self, k: int) -> npt.NDArray[np.float64]:
-        """``theta_k = Y_k^-1 eta_k`` (float64)."""
-        L = self._factor(k, np.zeros(self.info.shape[1:], dtype=self.dtype, order="F"))
-        return np.asarray(self._solve(L, self.eta[k]), dtype=np.float64)
+        theta = np.asarray(self._solve(L, self.eta[k]), dtype=np.float64)
+        return theta, np.ascontiguousarray(np.tril(L), dtype=np.float64)
 
     def information(self, k: int) -> npt.NDArray[np.float64]:
         """The full symmetric ``Y_k`` (float64)."""

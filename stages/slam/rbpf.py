@@ -399,7 +399,6 @@ class HilbertParticleMaps:
         #: map means; in the information form, those the last weighting used (before that scan's update)
         self.theta = np.zeros((n_particles, basis.M), dtype=self.dtype) if arrays is None else arrays[0]
         self._cache: tuple[Any, ...] | None = None
-        self._updated = False  # the cached scan's update is already applied (fused information step)
         self._buffers: dict[str, F64] = {}
         #: target size of one block of :meth:`weigh_and_update` (rows and whitened rows)
         self.block_bytes = 16 * 2**20
@@ -427,7 +426,8 @@ class HilbertParticleMaps:
     def map_of(self, k: int) -> tuple[F64, F64]:
         """Mean and covariance of particle k's map (float64)."""
         if self.stack is not None:
-            return self.stack.mean(k), hm.covariance_from_information(self.stack.lower_factor(k))
+            theta, L = self.stack.posterior(k)
+            return theta, hm.covariance_from_information(L)
         assert self.cstack is not None
         return self.theta[k].astype(np.float64), self.cstack.full(k)
 
@@ -452,15 +452,7 @@ class HilbertParticleMaps:
         w = self.weighting
         Np, N, M = len(poses), samples.n, self.basis.M
         pos = samples.labels > 0
-        B = int(np.count_nonzero(pos))
-        ring_offs = None
-        extra_rows = 0
-        if w.use_variance and w.endpoint_tolerance > 0 and B:
-            if w.et_variance == "taylor":
-                extra_rows = 2 * B
-            else:
-                ring_offs = stencil_offsets(w.endpoint_tolerance, w.ring_points, w.rings)[1:]
-                extra_rows = B * len(ring_offs)
+        B, ring_offs, extra_rows = self._tolerance_rows(samples)
         # samples, then Jacobian or ring rows, in one reused buffer (fresh pages cost more than the fill)
         rows = self._workspace("rows", (Np, N + extra_rows, M))
         phi = hm.features(self.basis, to_world(poses, samples.points), out=rows[:, :N])
@@ -488,7 +480,6 @@ class HilbertParticleMaps:
                 self.theta = theta
             else:
                 self.theta[first : first + Np] = theta
-            self._updated = fuse
             both = out if whiten else rows
         else:
             both = self.metric.transform(rows)
@@ -497,8 +488,22 @@ class HilbertParticleMaps:
         jac_t = None if jac is None else extra_t.reshape(jac.shape)
         if extra is not None and jac is None:
             ring = (extra, extra_t)
-        self._cache = (poses, samples, phi, phi_t, jac, jac_t, ring, mean_out) if first is None else None
+        # fused products are of a block and already updated: never cached for a later ``update``
+        cache = first is None and not fuse_update
+        self._cache = (poses, samples, phi, phi_t, jac, jac_t, ring, mean_out) if cache else None
         return phi, phi_t, jac, jac_t, ring, mean_out
+
+    def _tolerance_rows(self, samples: BeamSamples) -> tuple[int, F64 | None, int]:
+        """Endpoints ``B``, ring offsets (exact tolerance variance, else None) and the number of extra
+        rows the tolerance adds to the scan's samples (``2 B`` Jacobian or ``B K`` ring rows)."""
+        w = self.weighting
+        B = int(np.count_nonzero(samples.labels > 0))
+        if not (w.use_variance and w.endpoint_tolerance > 0 and B):
+            return B, None, 0
+        if w.et_variance == "taylor":
+            return B, None, 2 * B
+        offs = stencil_offsets(w.endpoint_tolerance, w.ring_points, w.rings)[1:]
+        return B, offs, B * len(offs)
 
     def log_likelihood(self, poses: F64, samples: BeamSamples) -> F64:
         if samples.n == 0:
@@ -529,15 +534,12 @@ class HilbertParticleMaps:
                 self.basis, self.theta[lo : lo + step], self.metric, p, samples, self.weighting,
                 phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring, mean=mean)
         self._cache = None
-        self._updated = False
         return out
 
     def block_size(self, samples: BeamSamples) -> int:
         """Particles per block of :meth:`weigh_and_update`: about ``block_bytes`` of rows (samples and
         tolerance rows, and their whitened copy)."""
-        w = self.weighting
-        b = int(np.count_nonzero(samples.labels > 0)) if w.use_variance and w.endpoint_tolerance > 0 else 0
-        rows = samples.n + b * (2 if w.et_variance == "taylor" else w.ring_points * w.rings)
+        rows = samples.n + self._tolerance_rows(samples)[2]
         per = 2 * rows * self.basis.M * self.dtype.itemsize
         return max(1, int(self.block_bytes // max(per, 1)))
 
@@ -546,14 +548,12 @@ class HilbertParticleMaps:
             return
         labels = samples.labels.astype(self.dtype)
         if self.stack is not None:
-            if not (self._cached(poses, samples) is not None and self._updated):
-                self._update_information(self.stack, poses, samples, labels)
+            self._update_information(self.stack, poses, samples, labels)
         else:
             assert self.cstack is not None
             phi, phi_t = self._products(poses, samples)[:2]
             self._update_covariance(self.cstack, phi, phi_t, labels)
         self._cache = None
-        self._updated = False
 
     def _update_covariance(self, st: StackedCovariance, phi: F64, A: F64, labels: F64) -> None:
         """eq. 15-19 with ``A = H^T cov``: ``S = R R^T``, ``W = R^-1 A``, ``cov -= W^T W`` (syrk)."""
