@@ -55,18 +55,25 @@ def test_voxel_grid_ties_and_identities() -> None:
     keys = np.unique(rng.integers(0, 40, size=(2000, 3)), axis=0)
     grid = ((keys + 0.5) * 0.15).astype(np.float32).astype(np.float64)
     assert mm.chamfer_l1(grid, grid) == 0 and mm.fscore(grid, grid) == 1.0
-    # shifted by one voxel: distances are 0.15 up to float32 rounding; strict '<' keeps only coinciding voxels
+    assert mm.fscore_robust(grid, grid) == 1.0
+    # shifted by one voxel: distances are 0.15 up to rounding of the stored values
     for scale in (1, 600):  # also far from the origin (coordinates ~ 3.6 km), where float32 rounding is larger
         k = keys * [scale, 1, 1]
         shifted_k = k + np.array([1, 0, 0])
         shifted = ((shifted_k + 0.5) * 0.15).astype(np.float32).astype(np.float64)
         ref_grid = ((k + 0.5) * 0.15).astype(np.float32).astype(np.float64)
+        # the robust variant: the ties never count, only coinciding voxels match
         kset, sset = set(map(tuple, k.tolist())), set(map(tuple, shifted_k.tolist()))
         p = np.mean([tuple(x) in kset for x in shifted_k.tolist()])
         r = np.mean([tuple(x) in sset for x in k.tolist()])
         expected = 2 * p * r / (p + r) if p + r else 0.0
-        assert mm.fscore(shifted, ref_grid) == pytest.approx(expected, abs=1e-12)
-        assert mm.fscore(shifted, ref_grid, tie_tol=-2e-3) == 1.0  # counting the ties, every voxel matches
+        assert mm.fscore_robust(shifted, ref_grid) == pytest.approx(expected, abs=1e-12)
+        # the paper-compatible value: strict '<' on the float64 values as stored, each tie decided by rounding
+        b = _brute(shifted, ref_grid)
+        p64, r64 = np.mean(b["d_pg"] < 0.15), np.mean(b["d_gp"] < 0.15)
+        assert mm.fscore(shifted, ref_grid) == pytest.approx(2 * p64 * r64 / (p64 + r64), abs=1e-12)
+        assert mm.fscore(shifted, ref_grid) > expected  # some ties fall below 0.15 after rounding
+        assert mm.fscore(shifted, ref_grid, tie_tol=-2e-3) == 1.0  # counting every tie, every voxel matches
     assert mm.lr_ratio(grid, grid[:500]) == pytest.approx(len(grid) / 500)
     assert mm.lr_ratio(10, 4) == 2.5 and np.isnan(mm.lr_ratio(3, 0))
     empty = np.zeros((0, 3))

@@ -1,25 +1,36 @@
 """Map metrics of RMap Sec. IV-A on (N, 3) point clouds: Chamfer distances, F-score, D-Dist, per-axis CD.
 
-``pred`` is the predicted / input map (radar map, completed map), ``gt`` the lidar map. Nearest
-neighbours come from ``scipy.spatial.cKDTree`` in float64. Definitions (checked against PoinTr's
-``extensions/chamfer_dist`` and ``utils/metrics.py``, which RMap follows):
+``pred`` is the predicted / input map (radar map, completed map), ``gt`` the lidar map (RMap: the
+``lidar_filtered`` map). Nearest neighbours come from ``scipy.spatial.cKDTree`` on float64 coordinates,
+minimum over all neighbours (exact k = 1 queries). The conventions are those that reproduce the paper's
+Table III on the authors' published maps (``shared/data/coloradar_maps/README.md``; checked to 0.0005 by
+``tests/test_rmap_paper.py``):
 
-- CD-l1 (PoinTr ``ChamferDistanceL1``, from PCN [20]): ``(mean_p min_g |p-g| + mean_g min_p |p-g|) / 2``;
-- CD-l2 (PoinTr ``ChamferDistanceL2``, eq. 1): ``mean_p min_g |p-g|^2 + mean_g min_p |p-g|^2`` (no /2);
-- both are reported in metres (m^2 for CD-l2) and, as the papers print them, multiplied by 1000;
-- F-score at ``d`` (Tatarchenko et al. [30], eq. 3-5): precision = share of ``pred`` within ``d`` of
-  ``gt``, recall = share of ``gt`` within ``d`` of ``pred``, strict ``<``; F = 2PR / (P + R), 0 when both
-  are 0. On voxel-centre clouds with ``d`` equal to the voxel size, neighbouring centres lie exactly
-  ``d`` apart and float32 rounding of the stored coordinates (about 1e-6 m at 10 m) would decide each
-  such tie at random; distances within ``tie_tol`` of ``d`` therefore count as not below ``d``, so only
-  coinciding voxels match ("predictions falling within the same voxel", Sec. IV-A). The default
-  ``tie_tol`` is 8 float32 ulps of the largest coordinate (2e-6 m for maps within 20 m of the origin),
-  far below any real distance difference, so on continuous clouds the result is the plain strict ``<``;
+- CD-l1 (PCN [20], PoinTr ``ChamferDistanceL1``): ``(mean_p min_g |p-g| + mean_g min_p |p-g|) / 2``;
+- CD-l2 (eq. 1, [28], PoinTr ``ChamferDistanceL2``): ``mean_p min_g |p-g|^2 + mean_g min_p |p-g|^2``, a
+  sum, not halved. Table III prints both in metres (m^2 for CD-l2) although the text says x1000; the x1000
+  values are returned beside them (``*_x1000``);
+- F-score at ``d`` (eq. 3-5, Tatarchenko et al. [30], the authors' Open3D computation): precision = share
+  of ``pred`` with a ``gt`` point strictly nearer than ``d``, recall = share of ``gt`` with a ``pred`` point
+  strictly nearer than ``d``, ``F = 2PR / (P + R)`` (0 when both are 0). This is the reported
+  ``fscore_<d>``. On a 0.15 m voxel lattice with ``d = 0.15`` the face neighbours lie exactly on the
+  threshold, so whether one counts is decided by the rounding of the stored float64 coordinates: the
+  paper-compatible value is reproducible only on the coordinates exactly as published (float32 copies,
+  recomputed centres or ``<=`` give 0.45x to 1.4x the published values);
+- ``fscore_<d>_robust``: the same with the threshold lowered by ``ROBUST_TOL_FRACTION * d`` (0.1 % of the
+  voxel, 0.15 mm at d = 0.15 m): on a lattice only coinciding voxels match ("predictions falling within
+  the same voxel", Sec. IV-A), whatever the rounding; far below any real distance difference, so on
+  continuous clouds (completed maps before downsampling) it equals the strict ``<`` value;
 - D-Dist (eq. 6): for every ``gt`` point the distance to the nearest ``pred`` point; its percentiles
-  (50/75/90/95, linear interpolation);
-- per-axis CD (eq. 7): ``CD^x = mean_p (p^x - g_min(p)^x)^2 + mean_g (p_min(g)^x - g^x)^2`` with the 3D
-  nearest neighbours; ``CD^x + CD^y + CD^z = CD-l2``;
-- L/R ratio (Table I): number of lidar map points over radar map points.
+  50/75/90/95 with linear interpolation (numpy's default, ``method="linear"``). Table I pools these
+  distances over the scenes of an environment (:func:`pooled_deviation_distribution`);
+- per-axis CD (eq. 7, Table IV). Our reading of eq. 7: ``p_min`` / ``g_min`` are the 3D nearest
+  neighbours (the same pairs as CD-l2), and each axis keeps only its squared coordinate difference,
+  ``CD^x = mean_p (p^x - g_min(p)^x)^2 + mean_g (p_min(g)^x - g^x)^2``; hence ``CD^x + CD^y + CD^z = CD-l2``.
+  (Table IV's input row, 0.267 + 0.223 + 0.576 = 1.066 against CD-l2 1.065, agrees with this reading;
+  its RMap row, 0.278 against 0.279, too.);
+- L/R ratio (Table I): number of lidar map points over radar map points; Table I averages the per-scene
+  ratios over an environment's scenes.
 """
 
 from __future__ import annotations
@@ -32,6 +43,8 @@ from scipy.spatial import cKDTree
 
 F64 = npt.NDArray[np.float64]
 DDIST_PERCENTILES = (50.0, 75.0, 90.0, 95.0)
+#: threshold reduction of the robust F-score, as a fraction of ``d`` (0.1 %: 0.15 mm at d = 0.15 m)
+ROBUST_TOL_FRACTION = 1e-3
 
 
 def _cloud(points: npt.ArrayLike, name: str) -> F64:
@@ -75,26 +88,28 @@ class MapComparison:
             return float("nan")
         return float(np.mean(self.d_pg**2) + np.mean(self.d_gp**2))
 
-    def default_tie_tol(self) -> float:
-        """8 float32 ulps of the largest absolute coordinate (at least of 1 m)."""
-        big = max(1.0, float(np.abs(self.pred).max(initial=0.0)), float(np.abs(self.gt).max(initial=0.0)))
-        return 8.0 * float(np.finfo(np.float32).eps) * big
+    def fscore(self, d: float = 0.15, tie_tol: float = 0.0) -> tuple[float, float, float]:
+        """(F-score, precision, recall) at distance ``d`` (eq. 3-5): strict ``dist < d - tie_tol`` (m).
 
-    def fscore(self, d: float = 0.15, tie_tol: float | None = None) -> tuple[float, float, float]:
-        """(F-score, precision, recall) at distance ``d`` (eq. 3-5); ``tie_tol`` in metres (None: default)."""
+        ``tie_tol = 0`` is the paper-compatible value; :meth:`fscore_robust` lowers the threshold.
+        """
         if self.empty:
             return float("nan"), float("nan"), float("nan")
-        thr = d - (self.default_tie_tol() if tie_tol is None else tie_tol)
+        thr = d - tie_tol
         p = float(np.mean(self.d_pg < thr))
         r = float(np.mean(self.d_gp < thr))
         f = 2 * p * r / (p + r) if p + r > 0 else 0.0
         return f, p, r
 
+    def fscore_robust(self, d: float = 0.15, fraction: float = ROBUST_TOL_FRACTION) -> tuple[float, float, float]:
+        """(F, P, R) with the threshold ``d * (1 - fraction)``: lattice ties at ``d`` never count."""
+        return self.fscore(d, fraction * d)
+
     def deviation_distribution(self, percentiles: Sequence[float] = DDIST_PERCENTILES) -> F64:
         """Percentiles of the gt -> nearest pred distances (eq. 6)."""
         if self.empty:
             return np.full(len(percentiles), np.nan)
-        return np.percentile(self.d_gp, list(percentiles))
+        return np.percentile(self.d_gp, list(percentiles), method="linear")
 
     def chamfer_per_axis(self) -> F64:
         """(CD^x, CD^y, CD^z) of eq. 7."""
@@ -115,9 +130,15 @@ def chamfer_l2(pred: npt.ArrayLike, gt: npt.ArrayLike) -> float:
     return MapComparison(pred, gt).chamfer_l2()
 
 
-def fscore(pred: npt.ArrayLike, gt: npt.ArrayLike, d: float = 0.15, tie_tol: float | None = None) -> float:
-    """F-score at ``d`` (eq. 3-5)."""
+def fscore(pred: npt.ArrayLike, gt: npt.ArrayLike, d: float = 0.15, tie_tol: float = 0.0) -> float:
+    """F-score at ``d`` (eq. 3-5), paper-compatible (strict ``<`` on float64) unless ``tie_tol`` > 0."""
     return MapComparison(pred, gt).fscore(d, tie_tol)[0]
+
+
+def fscore_robust(pred: npt.ArrayLike, gt: npt.ArrayLike, d: float = 0.15,
+                  fraction: float = ROBUST_TOL_FRACTION) -> float:
+    """F-score at ``d * (1 - fraction)``: on a voxel lattice only coinciding voxels match."""
+    return MapComparison(pred, gt).fscore_robust(d, fraction)[0]
 
 
 def deviation_distribution(
@@ -132,6 +153,17 @@ def chamfer_per_axis(pred: npt.ArrayLike, gt: npt.ArrayLike) -> F64:
     return MapComparison(pred, gt).chamfer_per_axis()
 
 
+def pooled_deviation_distribution(
+    distances: Sequence[npt.ArrayLike], percentiles: Sequence[float] = DDIST_PERCENTILES
+) -> F64:
+    """Table I's D-Dist of an environment: percentiles of the gt -> pred distances of all its scenes pooled."""
+    parts = [np.asarray(d, np.float64).ravel() for d in distances]
+    pooled = np.concatenate(parts) if parts else np.zeros(0)
+    if len(pooled) == 0:
+        return np.full(len(percentiles), np.nan)
+    return np.percentile(pooled, list(percentiles), method="linear")
+
+
 def lr_ratio(lidar: npt.ArrayLike | int, radar: npt.ArrayLike | int) -> float:
     """L/R ratio of Table I: lidar map points over radar map points (counts or clouds)."""
     n_l = lidar if isinstance(lidar, int) else len(np.asarray(lidar))
@@ -143,6 +175,7 @@ def map_metrics(pred: npt.ArrayLike, gt: npt.ArrayLike, d: float = 0.15) -> dict
     """All map metrics under DESIGN.md's metric names (``cd_l1``, ``cd_l2``, ``fscore_0.15``, ``ddist_p50``..)."""
     cmp = MapComparison(pred, gt)
     f, p, r = cmp.fscore(d)
+    fr, pr, rr = cmp.fscore_robust(d)
     cd1, cd2 = cmp.chamfer_l1(), cmp.chamfer_l2()
     out = {
         "cd_l1": cd1,
@@ -152,6 +185,9 @@ def map_metrics(pred: npt.ArrayLike, gt: npt.ArrayLike, d: float = 0.15) -> dict
         f"fscore_{d:g}": f,
         f"precision_{d:g}": p,
         f"recall_{d:g}": r,
+        f"fscore_{d:g}_robust": fr,
+        f"precision_{d:g}_robust": pr,
+        f"recall_{d:g}_robust": rr,
     }
     for q, v in zip(DDIST_PERCENTILES, cmp.deviation_distribution(), strict=True):
         out[f"ddist_p{q:g}"] = float(v)

@@ -25,7 +25,8 @@ from stages.patches.fps_patches import Patches, make_patches
 class PatchesParams(StageParams):
     """Parameters of the `patches` stage (defaults: RMap Sec. III-B/C, test setting a = 4)."""
 
-    a: float = Field(4.0, gt=0, description="seed multiplier: t = a * n_R / N_R seeds (4 at test, 16 for training)")
+    a: float = Field(4.0, gt=0, description="seed multiplier: t = floor(a * n_R / N_R) seeds, at least 1 "
+                     "(4 at test, 16 for training)")
     n_radar: int = Field(2048, ge=1, description="radar points per patch (N_R)")
     n_lidar: int = Field(8192, ge=1, description="lidar points per patch (N_L)")
     outlier_neighbors: int = Field(20, ge=0, description="statistical outlier removal on the radar map: k (0 = off)")
@@ -42,7 +43,7 @@ class PatchesStage(Stage):
     description = "FPS patches of the radar and lidar maps (RMap Algorithm 1)"
     inputs = ("voxel",)
     Params = PatchesParams
-    version = "1"
+    version = "2"  # 2: t = floor(a * n_R / N_R) seeds (was ceil)
     outputs = ("patches.parquet", "patches.json")
 
     def run(self, ctx: StageContext) -> None:
