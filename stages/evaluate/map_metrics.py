@@ -173,7 +173,11 @@ def lr_ratio(lidar: npt.ArrayLike | int, radar: npt.ArrayLike | int) -> float:
 
 def map_metrics(pred: npt.ArrayLike, gt: npt.ArrayLike, d: float = 0.15) -> dict[str, float]:
     """All map metrics under DESIGN.md's metric names (``cd_l1``, ``cd_l2``, ``fscore_0.15``, ``ddist_p50``..)."""
-    cmp = MapComparison(pred, gt)
+    return comparison_metrics(MapComparison(pred, gt), d)
+
+
+def comparison_metrics(cmp: MapComparison, d: float = 0.15) -> dict[str, float]:
+    """:func:`map_metrics` of an existing :class:`MapComparison` (its nearest neighbours reused)."""
     f, p, r = cmp.fscore(d)
     fr, pr, rr = cmp.fscore_robust(d)
     cd1, cd2 = cmp.chamfer_l1(), cmp.chamfer_l2()
