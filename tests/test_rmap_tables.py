@@ -13,7 +13,13 @@ from stages.evaluate import map_metrics as mm
 from stages.evaluate import rmap_paper as paper
 from stages.evaluate import rmap_tables as rt
 from stages.evaluate.rmap_figures import plot_top_views
-from stages.evaluate.rmap_results import collect_scene_results, load_scene_maps, rebuilt_scenes, score_maps
+from stages.evaluate.rmap_results import (
+    collect_scene_results,
+    load_scene_maps,
+    plot_run_top_views,
+    rebuilt_scenes,
+    score_maps,
+)
 
 SCENES = ("arpg_lab_run0", "aspen_run1", "outdoors_run4")
 
@@ -137,6 +143,13 @@ def test_collect_from_run_folders(tmp_path: Path) -> None:
     direct = score_maps("rmap_arpg_lab_run0", load_scene_maps(seq), rebuilt=True)
     assert direct.get(rt.INPUT, "fscore_0.15") == r.get(rt.INPUT, "fscore_0.15")
     assert direct.get(rt.INPUT, "lr_ratio") == pytest.approx(len(gt) / len(radar))
+    with pytest.warns(UserWarning, match="rmap_aspen_run0 left out of the top-view figure"):
+        fig = plot_run_top_views(tmp_path, tmp_path / "top.png", ("rmap_arpg_lab_run0", "rmap_aspen_run0"))
+    assert fig is not None and fig.stat().st_size > 0
+    text = rt.report(res, sweep=res, figure="top.png")
+    for title in ("Table I:", "Table III:", "Table IV:", "Table VI:", "](top.png)"):
+        assert title in text
+    assert "| arpg_lab_run0 † |" in text
     assert rebuilt_scenes({"a": {"lidar_filtered": {"source": "map"}},
                            "b": {"lidar_filtered": {"source": "union of 3 published gt patches"}}}) == {"b"}
 

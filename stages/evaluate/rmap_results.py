@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import warnings
-from collections.abc import Collection, Iterable, Mapping
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +20,7 @@ import numpy as np
 from pipeline.errors import UserError
 from schemas import read_artifact
 from stages.evaluate.map_metrics import MapComparison, comparison_metrics, lr_ratio, nearest
+from stages.evaluate.rmap_figures import plot_top_views
 from stages.evaluate.rmap_tables import COMPLETED, F64, INPUT, LIDAR, SceneResult, scene_name
 
 MAP_METHODS = (INPUT, COMPLETED, LIDAR)
@@ -148,3 +149,28 @@ def score_maps(scene: str, maps: Mapping[str, F64], rebuilt: bool = False, d: fl
         if with_distances:
             distances[method] = cmp.d_gp
     return SceneResult(scene=scene_name(scene), seq=scene, metrics=metrics, rebuilt=rebuilt, distances=distances)
+
+
+#: the three scenes of the top-view figure by default (one lab, one hallway, one outdoor scene)
+FIGURE_SEQS = ("rmap_arpg_lab_run0", "rmap_ec_hallways_run0", "rmap_outdoors_run0")
+
+
+def plot_run_top_views(runs_dir: Path, path: Path, seqs: Sequence[str] = FIGURE_SEQS, z_max: float | None = None,
+                       seed: int = 0) -> Path | None:
+    """Fig. 3-style top views (input, completed, lidar) of ``seqs`` that have voxel maps in ``runs_dir``.
+
+    Sequences without maps are left out with a warning; None (and a warning) when none has them.
+    """
+    scenes = {}
+    for seq in seqs:
+        d = Path(runs_dir) / seq
+        if not (d / "voxel" / "radar_map.parquet").is_file() or not (d / "voxel" / "lidar_map.parquet").is_file():
+            warnings.warn(f"{d / 'voxel'}: no radar/lidar map, {seq} left out of the top-view figure; run "
+                          f"`pipeline run all --seq {seq}`", stacklevel=2)
+            continue
+        scenes[scene_name(seq)] = load_scene_maps(d)
+    if not scenes:
+        warnings.warn("no sequence of the top-view figure has maps; figure not written", stacklevel=2)
+        return None
+    return plot_top_views(path, scenes, "input radar, completed and lidar maps (top view, colour: height)",
+                          z_max=z_max, seed=seed)
