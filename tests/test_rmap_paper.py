@@ -144,3 +144,30 @@ def test_table_vi_patch_totals_with_the_absent_scenes_estimated() -> None:
         assert estimate == pytest.approx(paper.TABLE_VI[a].patches, rel=0.01), (a, ours[a], estimate)
     ceil = sum(math.ceil(_cleaned_radar_points(s) / N_RADAR) for s in have) + m_absent / N_RADAR + 0.5 * len(absent)
     assert abs(ceil / paper.TABLE_VI[1].patches - 1) > 0.03  # the rule is discriminated at a = 1
+
+
+def test_largest_differences_and_patch_counts_summary() -> None:
+    """The closing-note numbers: largest |ours - paper| per Table III input metric, and our patch totals.
+
+    ``pytest tests/test_rmap_paper.py -k summary -s`` prints them.
+    """
+    index = _index()
+    have, absent = _present(index, paper.TEST_SCENES)
+    if not have:
+        pytest.skip("no Table III scene in the shared copy")
+    lines = [f"Table III input, {len(have)} of 21 test scenes (absent: {', '.join(absent) or 'none'})"]
+    for group, rebuilt in (("map", False), ("rebuilt", True)):
+        scenes = [s for s in have if (index[s]["lidar_filtered"]["source"] != "map") == rebuilt]
+        if not scenes:
+            continue
+        worst = {k: max((abs(_input_metrics(s)[k] - paper.TABLE_III[s].input.metrics()[k]), s) for s in scenes)
+                 for k in paper.MAP_KEYS}
+        lines.append(f"  {group} ({len(scenes)} scenes): "
+                     + "; ".join(f"{k} {d:.5f} ({s})" for k, (d, s) in worst.items()))
+        if not rebuilt:
+            assert max(d for d, _ in worst.values()) <= 0.001
+    totals = _floor_totals(have, (1, 2, 4, 8, 16, 32))
+    lines.append("patch totals t = floor(a n_R / N_R): "
+                 + ", ".join(f"a={a}: {n} (paper {paper.TABLE_VI[a].patches})" for a, n in totals.items()))
+    print("\n".join(lines))
+    assert all(totals[a] < totals[2 * a] for a in (1, 2, 4, 8, 16))
