@@ -59,6 +59,11 @@ def test_table_iii_rows_overall_and_marks() -> None:
     text = t.markdown()
     assert "18 of the paper's" not in text and "3 of the paper's 21 test scenes" in text
     assert "† ground truth rebuilt" in text and "aspen_run1" in text and "mean of the rows' percentiles" in text
+    part = _results()
+    part[0] = rt.SceneResult(part[0].scene, {rt.INPUT: part[0].metrics[rt.INPUT]})
+    t2 = rt.table_iii(part)
+    assert _row(t2, "**Overall**")[13] == rt.fmt(np.mean([0.10, 0.15]))  # over the scenes that have one
+    assert "the 2 scenes with a completed map (input: 3)" in t2.markdown()
 
 
 def test_overall_ddist_pools_distances_when_every_row_has_them() -> None:
@@ -81,6 +86,7 @@ def test_table_iv_means_beside_the_paper() -> None:
     inp = _row(t, "Input map")
     assert inp[1:3] == ["1.065", rt.fmt(np.mean([0.2, 0.4, 0.6]))]  # CD-l2 paper | ours
     assert inp[3:5] == ["0.267", rt.fmt(np.mean([0.05, 0.1, 0.15]))]  # CD^x
+    assert "same scenes" not in t.markdown() and "3 of the paper's 21" in t.markdown()
     assert _row(t, "RMap / ours completed")[7:9] == ["0.080", rt.fmt(np.mean([0.05, 0.1, 0.15]))]  # CD^z
 
 

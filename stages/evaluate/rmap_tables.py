@@ -121,12 +121,13 @@ def _test_results(results: Iterable[SceneResult]) -> dict[str, SceneResult]:
     return {r.scene: r for r in results if r.scene in paper.TABLE_III}
 
 
-def _coverage_note(have: Sequence[str]) -> list[str]:
+def _coverage_note(have: Sequence[str], same_row: bool = False) -> list[str]:
     missing = [s for s in paper.TEST_SCENES if s not in have]
     if not missing:
         return []
+    same = "; the row 'paper, same scenes' is the mean of the paper's rows for ours" if same_row else ""
     return [f"ours covers {len(have)} of the paper's {len(paper.TEST_SCENES)} test scenes (absent: "
-            f"{', '.join(missing)}); the row 'paper, same scenes' is the mean of the paper's rows for ours."]
+            f"{', '.join(missing)}){same}."]
 
 
 def _rebuilt_note(results: Iterable[SceneResult]) -> list[str]:
@@ -162,11 +163,14 @@ def table_iii(results: Iterable[SceneResult]) -> Table:
     o_c, pooled_c = overall(found, COMPLETED)
     rows.append(["**Overall**", *_scores(paper.TABLE_III_OVERALL.input.metrics()), *_scores(o_in),
                  *_scores(paper.TABLE_III_OVERALL.rmap.metrics()), *_scores(o_c)])
-    notes = _coverage_note(list(res))
-    if notes:
+    notes = _coverage_note(list(res), same_row=True)
+    if len(res) < len(paper.TEST_SCENES):
         same_in = _paper_mean([paper.TABLE_III[s].input for s in res])
         same_rm = _paper_mean([paper.TABLE_III[s].rmap for s in res])
         rows.append(["paper, same scenes", *_scores(same_in), *_nan_scores(), *_scores(same_rm), *_nan_scores()])
+    n_in, n_c = (sum(m in r.metrics for r in found) for m in (INPUT, COMPLETED))
+    if 0 < n_c < n_in:
+        notes.append(f"ours completed Overall: the {n_c} scenes with a completed map (input: {n_in}).")
     notes += _rebuilt_note(found)
     notes.append(_ddist_note(pooled_in and (pooled_c or not any(COMPLETED in r.metrics for r in found))))
     robust = ", ".join(f"{name} {fmt(o['fscore_0.15_robust'])}" for name, o, method in
