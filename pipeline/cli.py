@@ -262,14 +262,21 @@ def export(
     fmt: Annotated[str, typer.Option("--format", "-f", help="tum | ply | mcap")],
     out_dir: Annotated[Path | None, typer.Option("--out", help="output folder (default runs/<seq>/export)")] = None,
     runs_dir: RunsOpt = None,
+    groundtruth_stamps: Annotated[str, typer.Option(
+        "--groundtruth-stamps", help="tum: ground truth interpolated at the estimates' stamps (estimates: evo "
+        "pairs every pose exactly) or at its own samples (own)")] = "estimates",
 ) -> None:
     """Export trajectories (TUM, evo-compatible), maps (PLY) or results (MCAP with Foxglove schemas)."""
     from pipeline.export import export as do_export
 
     store = RunStore(_runs_dir(runs_dir), seq)
-    written = do_export(store, fmt, out_dir or store.seq_dir / "export")
+
+    def note(message: str) -> None:
+        console.print(f"[yellow]note[/] {escape(message)}", soft_wrap=True, highlight=False)
+
+    written = do_export(store, fmt, out_dir or store.seq_dir / "export", note, groundtruth_stamps)
     for p in written:
-        out.print(str(p))
+        print(p, flush=True)
 
 
 @app.command()
