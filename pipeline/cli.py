@@ -19,7 +19,7 @@ from typer.exceptions import TyperException
 from pipeline.config import describe_params, load_workflow, parse_set
 from pipeline.errors import UserError
 from pipeline.paths import default_runs_dir
-from pipeline.registry import load_stages
+from pipeline.registry import STAGE_NAMES, load_stages
 from pipeline.runner import Runner, StageOutcome, StagesFailed
 from pipeline.sequences import SequenceInfo, expand_sequences, load_registry, source_sequence
 from pipeline.store import RunStore
@@ -243,7 +243,9 @@ def view(
 ) -> None:
     """Open the run's .rrd files in the Rerun viewer (prints the command when headless)."""
     store = RunStore(_runs_dir(runs_dir), seq)
-    names = stages or [p.name for p in sorted(store.seq_dir.glob("*")) if p.is_dir() and not p.name.startswith(".")]
+    present = [p.name for p in sorted(store.seq_dir.glob("*")) if p.is_dir() and not p.name.startswith(".")]
+    order = {name: i for i, name in enumerate(STAGE_NAMES)}
+    names = stages or sorted(present, key=lambda n: order.get(n, len(order)))  # pipeline order
     files = [store.stage_dir(s) / f"{s}.rrd" for s in names]
     files = [f for f in files if f.exists()]
     if not files:

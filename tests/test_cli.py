@@ -3,16 +3,24 @@
 from __future__ import annotations
 
 import os
+import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
+
+from pipeline.config import describe_params
+from pipeline.registry import load_stages
+from pipeline.sequences import SequenceInfo, load_registry
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True, text=True, cwd=ROOT,
-                          env={**os.environ, **(env or {}), "COLUMNS": "200"}, timeout=120)
+                          env={**os.environ, "COLUMNS": "200", **(env or {})}, timeout=120)
 
 
 def test_user_errors_exit_2_with_one_line() -> None:
@@ -61,3 +69,85 @@ def test_view_headless_prints_the_command(tmp_path: Path) -> None:
     assert r.returncode == 0 and "rerun " in r.stdout and "ingest.rrd" in r.stdout
     r = cli("view", "--seq", "nothing", "--runs-dir", str(tmp_path))
     assert r.returncode == 2 and "no .rrd recordings" in r.stderr
+
+
+def _tokens(text: str) -> set[str]:
+    """Whole words of a listing or table (split at spaces and table borders)."""
+    return set(re.split(r"[\s│┃┏┓┗┛┡┩━─┳╇┃]+", text))
+
+
+def _data_column(info: SequenceInfo) -> str:
+    found = info.locate()
+    expected = info.expected_locations()
+    return str(found or (expected[0] if expected else "$COLORADAR_ROOT/" + (info.run or "")))
+
+
+@pytest.mark.parametrize("columns", ["80", "200"])
+def test_sequences_never_cut_names_or_paths(tmp_path: Path, columns: str) -> None:
+    root = tmp_path / ("a_long_folder_name_for_the_coloradar_data_" * 2)
+    root.mkdir()
+    env = {"COLORADAR_ROOT": str(root), "COLUMNS": columns}
+    os.environ["COLORADAR_ROOT"] = str(root)  # the same expected paths in this process (restored by conftest)
+    registry = load_registry()
+    r = cli("sequences", env=env)
+    assert r.returncode == 0, r.stderr
+    words = _tokens(r.stdout)
+    for info in registry.values():
+        assert info.name in words
+        assert _data_column(info) in words, _data_column(info)
+    assert "…" not in r.stdout
+    assert max(len(line) for line in r.stdout.splitlines()) > int(columns) or columns == "200"
+
+
+@pytest.mark.parametrize("columns", ["80", "200"])
+def test_params_never_cut_parameter_names(columns: str) -> None:
+    r = cli("params", env={"COLUMNS": columns})
+    assert r.returncode == 0, r.stderr
+    words = _tokens(r.stdout)
+    registry = load_stages()
+    for stage in registry.values():
+        for name, *_ in describe_params(stage):
+            assert f"{stage.name}.{name}" in words
+    assert "…" not in r.stdout
+
+
+def test_view_prints_one_pasteable_line(tmp_path: Path) -> None:
+    runs = tmp_path / ("runs_in_a_deliberately_long_folder_name_" * 2)
+    files = []
+    for stage in ("ingest", "filter", "odometry"):
+        d = runs / "s" / stage
+        d.mkdir(parents=True)
+        files.append(d / f"{stage}.rrd")
+        files[-1].write_bytes(b"")
+    r = cli("view", "--seq", "s", "--runs-dir", str(runs), env={"DISPLAY": "", "WAYLAND_DISPLAY": "", "COLUMNS": "80"})
+    assert r.returncode == 0, r.stderr
+    (line,) = r.stdout.splitlines()
+    assert shlex.split(line) == ["rerun", *map(str, files)]
+
+
+def test_bad_runs_dir_is_a_one_line_user_error(tmp_path: Path) -> None:
+    afile = tmp_path / "afile"
+    afile.write_text("not a folder")
+    for args in (["run", "ingest", "--seq", "demo"], ["status", "--seq", "demo"],
+                 ["export", "--seq", "demo", "--format", "tum"]):
+        r = cli(*args, "--runs-dir", str(afile))
+        assert r.returncode == 2, (args, r.stderr)
+        assert f"--runs-dir {afile}: is a file, not a folder" in r.stderr and "Traceback" not in r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
+    r = cli("run", "ingest", "--seq", "demo", "--runs-dir", str(afile / "runs"))
+    assert r.returncode == 2 and f"--runs-dir {afile / 'runs'}: cannot write there (Not a directory)" in r.stderr
+    r = cli("run", "ingest", "--seq", "demo", env={"RADAR_PIPELINE_RUNS": str(afile)})
+    assert r.returncode == 2 and f"$RADAR_PIPELINE_RUNS {afile}: is a file" in r.stderr
+    if os.geteuid() != 0:  # root writes anywhere
+        ro = tmp_path / "ro"
+        ro.mkdir(mode=0o555)
+        r = cli("run", "ingest", "--seq", "demo", "--runs-dir", str(ro))
+        assert r.returncode == 2 and "cannot write there (Permission denied)" in r.stderr
+
+
+def test_failed_sequences_of_a_multi_sequence_run_set_the_exit_code(tmp_path: Path) -> None:
+    # typer hands `raise typer.Exit(2)` back as a return value without standalone mode; it must not become 0
+    r = cli("run", "ingest", "--seq", "coloradar_1,coloradar_2", "--workers", "1", "--runs-dir", str(tmp_path),
+            env={"COLORADAR_ROOT": str(tmp_path)})
+    assert r.returncode == 2, r.stderr
+    assert "coloradar_1: failed" in r.stderr and "coloradar_2: failed" in r.stderr
