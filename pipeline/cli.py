@@ -103,8 +103,8 @@ def run(
     registry = load_stages()
     overrides = parse_set(set_ or [], registry)
     wf = load_workflow(workflow)
-    runs = _runs_dir(runs_dir, write=True)
     seqs = _sequences(seq, source, dataset)
+    runs = _runs_dir(runs_dir, write=True)
     forced = tuple(stages) if force else ()
     if len(seqs) == 1 and executor is None:
         runner = Runner(seqs[0], runs, registry, wf, overrides, console)

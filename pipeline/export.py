@@ -226,9 +226,10 @@ def export_tum(store: RunStore, out: Path, note: Note = _warn, groundtruth_stamp
         written.append(write_tum(out / f"{e.name}.tum", e.t_ns, e.pose))
     planar = [e.name for e in est if not e.has_z and len(e.t_ns)]
     if planar:
-        ref_z = f" while the ground truth averages z = {np.mean(gt.pose[:, 2]):.2f} m" if gt is not None else ""
-        note(f"{', '.join(planar)}: planar estimates without z, written with z = 0{ref_z}; compare in the plane "
-             f"with `evo_ape tum groundtruth.tum {planar[-1]}.tum --project_to_plane xy`")
+        hint = "" if gt is None else (
+            f" while the ground truth averages z = {np.mean(gt.pose[:, 2]):.2f} m; compare in the plane with "
+            f"`evo_ape tum groundtruth.tum {planar[-1]}.tum --project_to_plane xy`")
+        note(f"{', '.join(planar)}: planar estimates without z, written with z = 0{hint}")
     return written
 
 

@@ -121,6 +121,7 @@ def test_no_ground_truth_writes_no_groundtruth_file(tmp_path: Path) -> None:
     assert [f.name for f in files] == ["odometry.tum"]
     assert not (tmp_path / "out" / "groundtruth.tum").exists()
     assert any(n.startswith("no ground truth in ") and "groundtruth.tum not written" in n for n in notes)
+    assert "odometry: planar estimates without z, written with z = 0" in notes  # no hint at a missing file
 
 
 def test_invalid_poses_and_uncovered_stamps_are_left_out_and_said(tmp_path: Path) -> None:
