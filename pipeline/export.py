@@ -354,4 +354,7 @@ def export(store: RunStore, fmt: str, out: Path, note: Note | None = None, groun
         if fmt == "mcap":
             need = "trajectories or maps"
         raise UserError(f"nothing to export for '{store.seq}': no {need} in {store.seq_dir}")
+    stale = sorted(p.name for p in out.glob(f"*.{fmt}") if p not in written)
+    if stale:
+        say(f"{out} also holds {', '.join(stale)} from an earlier export (not written now); left as they are")
     return written

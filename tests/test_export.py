@@ -100,6 +100,9 @@ def test_each_trajectory_written_once(tmp_path: Path) -> None:
     assert [f.name for f in files] == ["groundtruth.tum", "odometry.tum", "fastslam_grid.tum", "rich_slam.tum"]
     np.testing.assert_allclose(np.loadtxt(tmp_path / "out" / "rich_slam.tum")[:, 1], np.arange(N) + 0.5)
     np.testing.assert_allclose(np.loadtxt(tmp_path / "out" / "odometry.tum")[:, 1], np.arange(N) * 1.0)
+    (tmp_path / "out" / "slam.tum").write_text("")  # as an older export wrote it
+    _, notes = run_export(store, "tum", tmp_path / "out")
+    assert any("also holds slam.tum from an earlier export" in n for n in notes)
 
 
 def test_z_from_the_estimate_or_its_odometry_else_said(tmp_path: Path) -> None:
