@@ -6,6 +6,7 @@ import os
 import shlex
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -18,11 +19,12 @@ from typer.exceptions import TyperException
 from pipeline.config import describe_params, load_workflow, parse_set
 from pipeline.errors import UserError
 from pipeline.paths import default_runs_dir
-from pipeline.registry import load_stages
+from pipeline.registry import STAGE_NAMES, load_stages
 from pipeline.runner import Runner, StageOutcome, StagesFailed
 from pipeline.sequences import SequenceInfo, expand_sequences, load_registry, source_sequence
 from pipeline.store import RunStore
 from pipeline.sweep import command as sweep_command
+from pipeline.tables import Column, print_listing
 
 if TYPE_CHECKING:
     from pipeline.executors import TaskResult
@@ -49,6 +51,24 @@ def _sequences(seq: str | None, source: Path | None, dataset: str) -> list[Seque
     if not seq:
         raise UserError("--seq is required (see `pipeline sequences`), or pass --source PATH")
     return expand_sequences(seq, load_registry())
+
+
+def _runs_dir(runs_dir: Path | None, write: bool = False) -> Path:
+    """The run store, checked: a file, or (``write``) a folder that cannot be written, is a user error."""
+    runs = runs_dir or default_runs_dir()
+    name = "--runs-dir" if runs_dir is not None else (
+        "$RADAR_PIPELINE_RUNS" if os.environ.get("RADAR_PIPELINE_RUNS") else "the run store")
+    if runs.exists() and not runs.is_dir():
+        raise UserError(f"{name} {runs}: is a file, not a folder; name a folder (it is created if missing)")
+    if write:
+        try:
+            runs.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryFile(dir=runs):
+                pass
+        except OSError as exc:
+            raise UserError(f"{name} {runs}: cannot write there ({exc.strerror or exc}); "
+                            f"name a folder you can write to") from None
+    return runs
 
 
 def _print_outcomes(seq: str, outcomes: list[StageOutcome]) -> None:
@@ -83,8 +103,8 @@ def run(
     registry = load_stages()
     overrides = parse_set(set_ or [], registry)
     wf = load_workflow(workflow)
-    runs = runs_dir or default_runs_dir()
     seqs = _sequences(seq, source, dataset)
+    runs = _runs_dir(runs_dir, write=True)
     forced = tuple(stages) if force else ()
     if len(seqs) == 1 and executor is None:
         runner = Runner(seqs[0], runs, registry, wf, overrides, console)
@@ -162,7 +182,7 @@ def status(
     overrides = parse_set(set_ or [], registry)
     wf = load_workflow(workflow)
     for info in expand_sequences(seq, load_registry()):
-        runner = Runner(info, runs_dir or default_runs_dir(), registry, wf, overrides, console)
+        runner = Runner(info, _runs_dir(runs_dir), registry, wf, overrides, console)
         table = Table(title=f"{info.name} ({runner.store.seq_dir})", title_justify="left")
         for col in ("stage", "state", "seconds", "finished", "why"):
             table.add_column(col, justify="right" if col == "seconds" else "left")
@@ -177,9 +197,7 @@ def status(
 @app.command()
 def sequences() -> None:
     """Registered sequences, where their data is expected, and whether it is present."""
-    table = Table(title="sequences (data/sequences.toml)", title_justify="left")
-    for col in ("name", "kind", "data", "present", "description"):
-        table.add_column(col)
+    rows = []
     for info in load_registry().values():
         found = info.locate()
         expected = info.expected_locations()
@@ -188,8 +206,11 @@ def sequences() -> None:
             present = "[green]yes[/]" if found else "[dim]generated on first use[/]"
         else:
             present = "[green]yes[/]" if found else "[red]no[/]"
-        table.add_row(info.name, info.kind, where, present, info.description or (info.run or ""))
-    out.print(table)
+        rows.append([escape(info.name), escape(info.kind), escape(where), present,
+                     escape(info.description or (info.run or ""))])
+    columns = [Column("name", keep=True), Column("kind"), Column("data", keep=True), Column("present"),
+               Column("description")]
+    print_listing(out, "sequences (data/sequences.toml)", columns, rows)
 
 
 @app.command()
@@ -204,13 +225,14 @@ def params(stage: Annotated[str | None, typer.Argument(help="a stage name (defau
             from pipeline.config import did_you_mean
 
             raise UserError(f"unknown stage '{name}'{did_you_mean(name, registry)}")
-        table = Table(title=f"{name}: {registry[name].description}", title_justify="left")
-        for col in ("parameter", "type", "default", f"workflow {wf.name}", "description"):
-            table.add_column(col)
+        rows = []
         for pname, typ, default, desc in describe_params(registry[name]):
             wval = wf.params.get(name, {}).get(pname, "")
-            table.add_row(f"{name}.{pname}", typ, repr(default), repr(wval) if wval != "" else "", desc)
-        out.print(table)
+            rows.append([escape(f"{name}.{pname}"), escape(typ), escape(repr(default)),
+                         escape(repr(wval)) if wval != "" else "", escape(desc)])
+        columns = [Column("parameter", keep=True), Column("type"), Column("default"),
+                   Column(f"workflow {wf.name}"), Column("description")]
+        print_listing(out, f"{name}: {registry[name].description}", columns, rows)
 
 
 @app.command()
@@ -220,15 +242,18 @@ def view(
     runs_dir: RunsOpt = None,
 ) -> None:
     """Open the run's .rrd files in the Rerun viewer (prints the command when headless)."""
-    store = RunStore(runs_dir or default_runs_dir(), seq)
-    names = stages or [p.name for p in sorted(store.seq_dir.glob("*")) if p.is_dir() and not p.name.startswith(".")]
+    store = RunStore(_runs_dir(runs_dir), seq)
+    present = [p.name for p in sorted(store.seq_dir.glob("*")) if p.is_dir() and not p.name.startswith(".")]
+    order = {name: i for i, name in enumerate(STAGE_NAMES)}
+    names = stages or sorted(present, key=lambda n: order.get(n, len(order)))  # pipeline order
     files = [store.stage_dir(s) / f"{s}.rrd" for s in names]
     files = [f for f in files if f.exists()]
     if not files:
         raise UserError(f"no .rrd recordings for '{seq}' in {store.seq_dir}; run `pipeline run all --seq {seq}` first")
     cmd = [sys.executable, "-m", "rerun", *map(str, files)]
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) or sys.platform == "win32":
-        out.print("headless: open the recordings with\n  " + shlex.join(["rerun", *map(str, files)]))
+        console.print("headless: open the recordings with")
+        print(shlex.join(["rerun", *map(str, files)]), flush=True)  # one line, never wrapped: it is pasted
         return
     subprocess.Popen(cmd)
 
@@ -239,14 +264,21 @@ def export(
     fmt: Annotated[str, typer.Option("--format", "-f", help="tum | ply | mcap")],
     out_dir: Annotated[Path | None, typer.Option("--out", help="output folder (default runs/<seq>/export)")] = None,
     runs_dir: RunsOpt = None,
+    groundtruth_stamps: Annotated[str, typer.Option(
+        "--groundtruth-stamps", help="tum: ground truth interpolated at the estimates' stamps (estimates: evo "
+        "pairs every pose exactly) or at its own samples (own)")] = "estimates",
 ) -> None:
     """Export trajectories (TUM, evo-compatible), maps (PLY) or results (MCAP with Foxglove schemas)."""
     from pipeline.export import export as do_export
 
-    store = RunStore(runs_dir or default_runs_dir(), seq)
-    written = do_export(store, fmt, out_dir or store.seq_dir / "export")
+    store = RunStore(_runs_dir(runs_dir), seq)
+
+    def note(message: str) -> None:
+        console.print(f"[yellow]note[/] {escape(message)}", soft_wrap=True, highlight=False)
+
+    written = do_export(store, fmt, out_dir or store.seq_dir / "export", note, groundtruth_stamps)
     for p in written:
-        out.print(str(p))
+        print(p, flush=True)
 
 
 @app.command()
@@ -337,7 +369,7 @@ def train(
     from stages.complete.train_cli import TrainRequest, run_training
 
     registry = load_stages()
-    runs = runs_dir or default_runs_dir()
+    runs = _runs_dir(runs_dir, write=True)
     req = TrainRequest(
         seqs=seqs, test_seqs=test_seqs, runs_dir=runs, registry=registry, workflow=load_workflow(workflow),
         overrides=parse_set(set_ or [], registry), train_overrides=parse_set(train_set or [], registry),
@@ -356,16 +388,27 @@ def train(
 app.command("sweep")(sweep_command)
 
 
+INTERRUPTED = 130  #: exit code after Ctrl-C (128 + SIGINT), as shells report it
+
+
+def _interrupted() -> None:
+    console.print("[red]interrupted[/]: finished stages are kept; a stage that was running left its previous "
+                  "result", soft_wrap=True)
+    sys.exit(INTERRUPTED)
+
+
 def main() -> None:
-    """Console entry point with the exit-code contract."""
+    """Console entry point with the exit-code contract (0 ok, 2 user error, 1 bug, 130 interrupted)."""
     try:
-        app(standalone_mode=False)
+        # without standalone mode typer turns Ctrl-C (KeyboardInterrupt) into a returned Exit code 130, and
+        # an explicit ``raise typer.Exit(n)`` into a returned n: both must become the process's exit status
+        code = app(standalone_mode=False)
     except UserError as exc:
         console.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True, highlight=False)
         sys.exit(2)
     except typer.Abort:
         console.print("[red]aborted[/]")
-        sys.exit(130)
+        sys.exit(INTERRUPTED)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except TyperException as exc:  # usage errors (unknown command or option, bad value)
@@ -376,8 +419,11 @@ def main() -> None:
             console.print(f"[bold red]error:[/] {escape(str(exc))}")
         sys.exit(int(getattr(exc, "exit_code", 2) or 2))
     except KeyboardInterrupt:
-        console.print("[red]interrupted[/]: finished stages are kept, the running one left its previous result")
-        sys.exit(130)
+        _interrupted()
+    if code == INTERRUPTED:
+        _interrupted()
+    if isinstance(code, int) and not isinstance(code, bool) and code != 0:
+        sys.exit(code)
 
 
 if __name__ == "__main__":

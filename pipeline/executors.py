@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import importlib
 import os
+import signal
+import sys
 import time
 import traceback
 from collections.abc import Callable, Iterable, Sequence
@@ -136,35 +138,67 @@ class LocalExecutor(Executor):
         results: dict[int, TaskResult] = {}
         running: dict[int, tuple[Any, Any]] = {}  # index -> (process, receiving end)
         queue = list(enumerate(tasks))
-        while queue or running:
-            while queue and len(running) < self.workers:
-                i, task = queue.pop(0)
-                recv, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_child, args=(task, send, self.threads), name=f"radar-pipeline:{task.name}")
-                proc.start()
-                send.close()
-                running[i] = (proc, recv)
-            ready = mp_wait([proc.sentinel for proc, _ in running.values()])
-            for i, (proc, recv) in list(running.items()):
-                if proc.sentinel not in ready:
-                    continue
-                proc.join()
-                t = tasks[i]
-                try:
-                    res = recv.recv() if recv.poll() else None
-                except (EOFError, OSError):
-                    res = None
-                if res is None:
-                    code = proc.exitcode
-                    why = f"signal {-code}" if code is not None and code < 0 else f"exit code {code}"
-                    res = TaskResult(t.name, t.seq.name, t.runs_dir, False, error=f"worker died ({why})",
-                                     error_kind="bug", worker=f"pid {proc.pid}")
-                recv.close()
-                del running[i]
-                results[i] = res
-                if on_done:
-                    on_done(res)
+        try:
+            while queue or running:
+                while queue and len(running) < self.workers:
+                    i, task = queue.pop(0)
+                    recv, send = ctx.Pipe(duplex=False)
+                    proc = ctx.Process(target=_child, args=(task, send, self.threads),
+                                       name=f"radar-pipeline:{task.name}")
+                    running[i] = (proc, recv)
+                    proc.start()
+                    send.close()
+                ready = mp_wait([proc.sentinel for proc, _ in running.values()])
+                for i, (proc, recv) in list(running.items()):
+                    if proc.sentinel not in ready:
+                        continue
+                    proc.join()
+                    res = _receive(tasks[i], proc, recv)
+                    del running[i]
+                    results[i] = res
+                    if on_done:
+                        on_done(res)
+        except KeyboardInterrupt:
+            _stop(proc for proc, _ in running.values())
+            raise
         return [results[i] for i in range(len(tasks))]
+
+
+#: seconds a worker gets, after it is told to stop, to remove its temporary folder before it is killed
+STOP_GRACE_S = 30.0
+
+
+def _receive(task: RunTask, proc: Any, recv: Any) -> TaskResult:
+    try:
+        res: TaskResult | None = recv.recv() if recv.poll() else None
+    except (EOFError, OSError):
+        res = None
+    recv.close()
+    if res is None:
+        code = proc.exitcode
+        why = f"signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+        res = TaskResult(task.name, task.seq.name, task.runs_dir, False, error=f"worker died ({why})",
+                         error_kind="bug", worker=f"pid {proc.pid}")
+    return res
+
+
+def _stop(procs: Iterable[Any]) -> None:
+    """Ctrl-C in the driver: tell each worker to stop (SIGTERM, which a worker turns into KeyboardInterrupt, so
+    the running stage removes its temporary folder and keeps its previous result) and wait for it."""
+    procs = [p for p in procs if p.pid is not None]
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
+    deadline = time.monotonic() + STOP_GRACE_S
+    for proc in procs:
+        proc.join(max(0.0, deadline - time.monotonic()))
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
 
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
@@ -173,11 +207,18 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"
 def _child(task: RunTask, conn: Any, threads: int = 0) -> None:
     from pipeline.stage import blas_threads
 
+    # Ctrl-C reaches the whole process group: the driver alone decides, and stops workers with SIGTERM
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _raise_interrupt)
     if threads > 0:  # libraries loaded from here on read these; those already loaded are limited below
         for var in THREAD_VARIABLES:
             os.environ[var] = str(threads)
-    with blas_threads(threads):
-        result = run_task(task)
+    try:
+        with blas_threads(threads):
+            result = run_task(task)
+    except KeyboardInterrupt:  # stopped by the driver: the runner has already cleaned up
+        conn.close()
+        sys.exit(130)
     conn.send(result)
     conn.close()
 
@@ -219,8 +260,20 @@ class RayExecutor(Executor):
         refs = {remote.remote(t): i for i, t in enumerate(tasks)}
         results: dict[int, TaskResult] = {}
         pending = list(refs)
+        try:
+            self._wait(tasks, refs, pending, results, on_done)
+        except KeyboardInterrupt:
+            for ref in pending:  # a cancelled task gets KeyboardInterrupt: its stage keeps its previous result
+                ray.cancel(ref)
+            raise
+        return [results[i] for i in range(len(tasks))]
+
+    def _wait(self, tasks: Sequence[RunTask], refs: dict[Any, int], pending: list[Any],
+              results: dict[int, TaskResult], on_done: ProgressFn | None) -> None:
+        ray = self.ray
         while pending:
-            done, pending = ray.wait(pending, num_returns=1)
+            done, rest = ray.wait(pending, num_returns=1)
+            pending[:] = rest
             for ref in done:
                 i = refs[ref]
                 try:
@@ -232,7 +285,6 @@ class RayExecutor(Executor):
                 results[i] = res
                 if on_done:
                     on_done(res)
-        return [results[i] for i in range(len(tasks))]
 
     def close(self) -> None:
         if self._started:

@@ -113,3 +113,53 @@ def test_reuse_links_matching_results(tmp_path: Path) -> None:
 def test_unknown_executor() -> None:
     with pytest.raises(UserError, match="--executor rya: unknown executor; did you mean 'ray'"):
         make_executor("rya")
+
+
+DRIVER = """
+import sys
+from pathlib import Path
+from pipeline.executors import LocalExecutor, RunTask, run_all
+from pipeline.sequences import SequenceInfo
+tmp, runs = Path(sys.argv[1]), sys.argv[2]
+ts = [RunTask(SequenceInfo(name=f"seq{i}", kind="source", source=tmp), runs, ("all",), (),
+              {"make_numbers": {"count": 6, "sleep_s": 120.0}}, str(tmp / "toy.toml"),
+              registry="tests.toy_stages:registry") for i in range(2)]
+try:
+    run_all(ts, LocalExecutor(2))
+except KeyboardInterrupt:
+    sys.exit(130)
+sys.exit(0)
+"""
+
+
+def test_ctrl_c_stops_the_process_pool_and_keeps_previous_results(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    runs = tmp_path / "runs"
+    assert all(r.ok for r in run_all(tasks(tmp_path, runs, [{}, {}]), Executor()))
+    before = [(runs / f"seq{i}" / "make_numbers" / "numbers.parquet").read_bytes() for i in range(2)]
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.Popen([sys.executable, "-c", DRIVER, str(tmp_path), str(runs)], cwd=root,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 120
+        while len(list(runs.glob("seq*/.tmp-make_numbers-*"))) < 2:  # both workers are inside the stage
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert time.monotonic() - t0 < 30  # the workers were stopped, not waited for (they sleep 120 s)
+    assert "Traceback" not in err
+    for i in range(2):
+        seq = runs / f"seq{i}"
+        assert (seq / "make_numbers" / "numbers.parquet").read_bytes() == before[i]
+        assert not [p.name for p in seq.iterdir() if p.name.startswith((".tmp-", ".old-"))]

@@ -1,0 +1,133 @@
+"""The command line on a real (simulated) run: Ctrl-C during a stage, and exports that evo reads as printed."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from filelock import FileLock
+
+simulator = pytest.importorskip("simulator")
+ROOT = Path(__file__).resolve().parents[1]
+SEQ = "clirun"
+#: a short run: 6 s of the demo world, slam with few particles and only the method the README compares
+SLAM = ["--set", "slam.n_particles=5", "--set", "slam.n_basis=64", "--set", 'slam.methods=["odometry","rich_slam"]']
+
+
+def cli(*args: str, **kw: object) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True, text=True, cwd=ROOT,
+                          env={**os.environ, "COLUMNS": "120"}, timeout=300, **kw)  # type: ignore[call-overload]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(runs folder, bag) with ingest .. slam finished."""
+    root = tmp_path_factory.mktemp("clirun")
+    bag = simulator.simulate_to(world="demo", out=root / "demo.bag", duration=6.0, seed=2, fmt="bag")
+    r = cli("run", "slam", "--source", str(bag), "--seq", SEQ, "--runs-dir", str(root / "runs"), *SLAM)
+    assert r.returncode == 0, r.stderr
+    return root / "runs", bag
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_ctrl_c_during_a_stage_exits_130_and_keeps_the_previous_result(run: tuple[Path, Path],
+                                                                        tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    shutil.copytree(run[0], runs)
+    seq_dir = runs / SEQ
+    before = _snapshot(seq_dir / "slam")
+    # a slam run long enough to be interrupted: 400 particles (a parameter change, so slam is stale and reruns)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "run", "slam", "--source", str(run[1]), "--seq", SEQ, "--runs-dir",
+         str(runs), *SLAM, "--set", "slam.n_particles=400"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "COLUMNS": "120"},
+        # the signal disposition a terminal gives (a non-interactive shell starts jobs with SIGINT ignored)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not list(seq_dir.glob(".tmp-slam-*")):  # the stage is running: it writes into its temporary folder
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    assert "slam      done" not in err  # it really was interrupted while running
+    assert _snapshot(seq_dir / "slam") == before  # the previous result, untouched
+    assert not [p.name for p in seq_dir.iterdir() if p.name.startswith((".tmp-", ".old-"))]
+    assert json.loads((seq_dir / "slam" / "manifest.json").read_text())["params"]["n_particles"] == 5
+    lock = FileLock(str(seq_dir / ".lock"), timeout=0)  # released: the next run can take it
+    lock.acquire()
+    lock.release()
+
+
+def test_readme_evo_command_works_on_the_tum_export(run: tuple[Path, Path], tmp_path: Path) -> None:
+    out = tmp_path / "tum"
+    r = cli("export", "--seq", SEQ, "--runs-dir", str(run[0]), "--format", "tum", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert sorted(Path(p).name for p in r.stdout.split()) == ["groundtruth.tum", "odometry.tum", "rich_slam.tum"]
+    assert "planar estimates without z" in r.stderr  # the odometry artifact has no z: said
+    evo_ape = Path(sys.executable).with_name("evo_ape")
+    if not evo_ape.exists():
+        pytest.skip(f"no evo_ape beside {sys.executable} (install the dev extra)")
+    # exactly as the README prints it
+    res = subprocess.run([str(evo_ape), "tum", "groundtruth.tum", "rich_slam.tum", "-v"], cwd=out,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+    found = re.search(r"Found (\d+) of max\. (\d+) possible matching timestamps", res.stdout)
+    assert found, res.stdout
+    n_est = len(np.loadtxt(out / "rich_slam.tum"))
+    n_gt = len(np.loadtxt(out / "groundtruth.tum"))
+    # every ground-truth row is at an estimate stamp, and ground truth covers nearly all of the run
+    assert int(found.group(1)) == int(found.group(2)) == n_gt and n_gt >= n_est - 2
+    rmse = float(re.search(r"rmse\s+([0-9.eE+-]+)", res.stdout).group(1))  # type: ignore[union-attr]
+    assert math.isfinite(rmse) and rmse > 0
+    # in the plane, against evo's Python API on the same files
+    from evo.core import metrics, sync
+    from evo.tools import file_interface
+
+    ref = file_interface.read_tum_trajectory_file(str(out / "groundtruth.tum"))
+    est = file_interface.read_tum_trajectory_file(str(out / "rich_slam.tum"))
+    ref, est = sync.associate_trajectories(ref, est)
+    assert np.array_equal(ref.timestamps, est.timestamps)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    assert ape.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(rmse, rel=1e-5)
+    planar = subprocess.run([str(evo_ape), "tum", "groundtruth.tum", "rich_slam.tum", "--project_to_plane", "xy"],
+                            cwd=out, capture_output=True, text=True, timeout=120)
+    assert planar.returncode == 0, planar.stdout + planar.stderr
+    planar_rmse = float(re.search(r"rmse\s+([0-9.eE+-]+)", planar.stdout).group(1))  # type: ignore[union-attr]
+    assert math.isfinite(planar_rmse) and planar_rmse < rmse  # the z offset of a planar estimate is gone
+
+
+def test_mcap_export_of_the_run_has_each_stamp_once(run: tuple[Path, Path], tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    r = cli("export", "--seq", SEQ, "--runs-dir", str(run[0]), "--format", "mcap", "--out", str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    stamps: dict[str, list[int]] = {}
+    with open(r.stdout.strip(), "rb") as f:
+        for _schema, channel, msg in make_reader(f).iter_messages(log_time_order=False):
+            stamps.setdefault(channel.topic, []).append(msg.log_time)
+    odo = stamps["/trajectory/odometry"]
+    assert len(odo) == len(set(odo)) and odo == sorted(odo)
+    assert set(stamps) >= {"/trajectory/groundtruth", "/trajectory/odometry", "/trajectory/rich_slam"}
+    assert "/trajectory/slam" not in stamps  # trajectory.parquet is rich_slam's copy: not a second channel
