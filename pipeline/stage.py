@@ -11,12 +11,12 @@ import hashlib
 import importlib.util
 import inspect
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 from pydantic import BaseModel, ConfigDict
 from rich.console import Console
@@ -28,6 +28,34 @@ from pipeline.errors import UserError
 if TYPE_CHECKING:
     from pipeline.recording import StageRecording
     from pipeline.sequences import SequenceInfo
+
+
+#: a report table: (title, headers, rows of cells)
+ReportTable = tuple[str, list[str], list[list[str]]]
+
+
+class StageReport(Protocol):
+    """What a stage offers ``pipeline report`` and sweeps: tables and figures over the metric records of many
+    runs (``{seq, method, metric, value, section, ...}``, gathered by the orchestration layer).
+
+    ``sequences`` maps each sequence name to ``{"kind", "scene", "split", "environment"}`` (what the registry
+    or the run knows), so reports can split map sequences by the paper's test/train split."""
+
+    sweep_figure_kinds: Sequence[str]
+
+    def tables(self, records: Sequence[dict[str, Any]],
+               sequences: Mapping[str, Mapping[str, Any]] | None = None) -> list[ReportTable]: ...
+
+    def markdown(self, records: Sequence[dict[str, Any]], title: str,
+                 sequences: Mapping[str, Mapping[str, Any]] | None = None) -> str: ...
+
+    def figures(self, records: Sequence[dict[str, Any]], out: Path, curves: Mapping[str, Any]) -> list[Path]: ...
+
+    def sweep_tables(self, records: Sequence[dict[str, Any]]) -> list[ReportTable]: ...
+
+    def sweep_figures(self, kind: str, root: Path, name: str, description: str, points: Sequence[Any],
+                      seqs: Sequence[str], records: Sequence[Mapping[str, Any]],
+                      meta: Mapping[str, Any]) -> list[Path]: ...
 
 
 class StageParams(BaseModel):
@@ -62,6 +90,10 @@ class Stage(ABC):
     def key_material(self, seq: SequenceInfo, params: StageParams) -> dict[str, Any]:
         """Extra values that enter the cache key (e.g. the fingerprint of a source bag)."""
         return {}
+
+    def report(self) -> StageReport | None:
+        """Tables and figures over many runs of this stage (``pipeline report``); None when it has none."""
+        return None
 
     def missing_requirements(self) -> list[str]:
         return [m for m in self.requires if importlib.util.find_spec(m) is None]

@@ -28,7 +28,7 @@ import numpy.typing as npt
 from pydantic import Field
 
 from pipeline.errors import UserError
-from pipeline.stage import Stage, StageContext, StageParams, blas_threads
+from pipeline.stage import Stage, StageContext, StageParams, StageReport, blas_threads
 from schemas import read_artifact, write_artifact
 from stages.evaluate import figures, tables
 from stages.evaluate.trajectory import evaluate_trajectory, path_length, quat_to_yaw
@@ -121,6 +121,11 @@ class EvaluateStage(Stage):
         if "rmap" in s:
             need += ["voxel"]
         return tuple(n for n in self.inputs if n in need)
+
+    def report(self) -> StageReport:
+        from stages.evaluate.report import EvaluationReport
+
+        return EvaluationReport()
 
     def run(self, ctx: StageContext) -> None:
         with blas_threads(ctx.params.blas_threads):
