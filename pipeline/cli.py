@@ -182,8 +182,7 @@ def sequences() -> None:
         table.add_column(col)
     for info in load_registry().values():
         found = info.locate()
-        expected = info.expected_locations()
-        where = str(found or (expected[0] if expected else "$COLORADAR_ROOT/" + (info.run or "")))
+        where = info.where()
         if info.kind == "simulated":
             present = "[green]yes[/]" if found else "[dim]generated on first use[/]"
         else:

@@ -83,6 +83,10 @@ class SequenceInfo:
     def where(self) -> str:
         """Where the data is (or is expected), for listings."""
         found = self.locate()
+        if found is not None and self.kind == "rmap":
+            scene = self.scene or self.name
+            layout = mapset.detect_layout(found, scene)
+            return str(mapset.scene_files(found, scene, layout)["radar"]) if layout else str(found)
         if found is not None:
             return str(found)
         expected = self.expected_locations()

@@ -82,6 +82,23 @@ class Stage(ABC):
     requires: ClassVar[tuple[str, ...]] = ()
     requires_extra: ClassVar[str] = ""
     implemented: ClassVar[bool] = True
+    #: what the sequence's source must provide (``sources.PROVIDES``: ``log`` = sensor streams, ``maps`` =
+    #: published voxel maps); the runner skips the stage, and everything that needs it, when it does not
+    needs: ClassVar[frozenset[str]] = frozenset()
+
+    def skip_reason(self, seq: SequenceInfo, params: StageParams) -> str | None:
+        """Why this stage cannot run for ``seq`` at all (one line), or None. Known before anything runs
+        (the source kind, the parameters); the default checks :attr:`needs` against the source."""
+        missing = sorted(self.needs - seq.provides)
+        if missing:
+            return f"'{seq.name}' is a {seq.kind_label}, it has no {' or '.join(missing)}"
+        return None
+
+    def skip_reason_for_inputs(self, seq: SequenceInfo, params: StageParams,
+                               input_dirs: Mapping[str, Path]) -> str | None:
+        """Why this stage cannot run on what its inputs hold (one line, e.g. "the log has no lidar"), or
+        None. Called once every input is finished, before the stage would run or be taken from the cache."""
+        return None
 
     def input_stages(self, params: StageParams) -> tuple[str, ...]:
         """Upstream stages for these parameters (override when a parameter picks an input)."""
@@ -201,6 +218,17 @@ class StageContext:
                 prog.advance(task, n)
 
             yield advance
+
+
+def parquet_rows(path: Path) -> int | None:
+    """Row count of a Parquet file from its footer (cheap), or None when it is absent or unreadable."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        return int(pq.ParquetFile(path).metadata.num_rows)
+    except (OSError, pa.ArrowInvalid):
+        return None
 
 
 def blas_threads(n: int) -> AbstractContextManager[Any]:
