@@ -11,15 +11,21 @@ per patch point with ``patch`` (int32), ``kind`` ('radar' / 'lidar'), world ``x,
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyarrow as pa
 from pydantic import Field
 
 from pipeline.errors import UserError
-from pipeline.stage import Stage, StageContext, StageParams
+from pipeline.stage import Stage, StageContext, StageParams, parquet_rows
 from schemas.io import read_artifact, write_artifact
 from stages.patches.fps_patches import Patches, make_patches
+
+if TYPE_CHECKING:
+    from pipeline.sequences import SequenceInfo
 
 
 class PatchesParams(StageParams):
@@ -44,6 +50,12 @@ class PatchesStage(Stage):
     Params = PatchesParams
     version = "1"
     outputs = ("patches.parquet", "patches.json")
+
+    def skip_reason_for_inputs(self, seq: SequenceInfo, params: StageParams,
+                               input_dirs: Mapping[str, Path]) -> str | None:
+        if "voxel" in input_dirs and parquet_rows(input_dirs["voxel"] / "lidar_map.parquet") == 0:
+            return "the lidar map is empty (no lidar or no ground truth in the log): no patch pairs"
+        return None
 
     def run(self, ctx: StageContext) -> None:
         p: PatchesParams = ctx.params
