@@ -98,10 +98,11 @@ class Runner:
 
     @property
     def kind_params(self) -> Overrides:
-        """Parameters every sequence of this source kind starts from (``sources.DEFAULT_PARAMS``)."""
+        """Parameters every sequence of this source kind starts from (``sources.DEFAULT_PARAMS``), for the
+        stages of this registry."""
         from pipeline.sequences import kind_defaults
 
-        return kind_defaults(self.seq.kind)
+        return {k: v for k, v in kind_defaults(self.seq.kind).items() if k in self.registry}
 
     def _check_names(self) -> None:
         for source, layer in (
