@@ -74,8 +74,8 @@ def scene_files(root: Path, scene: str, layout: Layout) -> dict[str, Path]:
 def detect_layout(root: Path, scene: str) -> Layout | None:
     """The layout under which ``root`` holds ``scene``'s radar map, or None."""
     for layout in ("authors", "folders"):
-        if scene_files(root, scene, layout)["radar"].is_file():  # type: ignore[arg-type]
-            return layout  # type: ignore[return-value]
+        if scene_files(root, scene, layout)["radar"].is_file():
+            return layout
     return None
 
 
@@ -97,7 +97,7 @@ def locations(scene: str) -> list[Path]:
     root = os.environ.get(ROOT_VAR)
     if not root:
         return []
-    return [scene_files(Path(root), scene, lay)["radar"] for lay in ("authors", "folders")]  # type: ignore[arg-type]
+    return [scene_files(Path(root), scene, lay)["radar"] for lay in ("authors", "folders")]
 
 
 def root_for(scene: str) -> Path:

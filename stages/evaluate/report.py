@@ -247,7 +247,7 @@ class EvaluationReport:
     """The evaluate stage's :class:`pipeline.stage.StageReport` (what ``pipeline report`` and sweeps call)."""
 
     metrics_file = "metrics.parquet"
-    sweep_figure_kinds = SWEEP_FIGURES
+    sweep_figure_kinds: Sequence[str] = SWEEP_FIGURES
 
     def tables(self, records: Sequence[dict[str, Any]],
                sequences: Mapping[str, Mapping[str, Any]] | None = None) -> list[Table]:
