@@ -107,14 +107,15 @@ def to_markdown(records: Sequence[dict[str, Any]], title: str = "Comparison",
     return stage_report().markdown(records, title, sequences)
 
 
-def write_outputs(records: Sequence[dict[str, Any]], out: Path, title: str) -> list[Path]:
+def write_outputs(records: Sequence[dict[str, Any]], out: Path, title: str,
+                  runs_dir: Path | None = None) -> list[Path]:
     """``out`` (markdown) and the combined long table beside it (``<out>.parquet``)."""
     import numpy as np
 
     from schemas import write_artifact
 
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(to_markdown(records, title))
+    out.write_text(to_markdown(records, title, runs_dir=runs_dir))
     cols: dict[str, Any] = {k: [r.get(k) for r in records] for k in ("seq", "method", "metric")}
     cols["value"] = np.array([r["value"] for r in records], np.float64)
     cols["features"] = np.array([int(r.get("features") or 0) for r in records], np.int32)

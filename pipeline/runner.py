@@ -229,7 +229,7 @@ class Runner:
         if reason:
             return StageStatus(name, "unavailable", reason)
         if self.skipped(name) is not None:
-            return StageStatus(name, "unavailable", "skipped: " + self.skip_message(name))
+            return StageStatus(name, "unavailable", self.skip_message(name))
         for dep in self.inputs_of(name):
             dep_reason = self.registry[dep].unavailable_reason()
             if dep_reason:

@@ -12,6 +12,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -259,3 +260,38 @@ def test_run_all_on_a_map_sequence_skips_the_log_stages(tmp_path: Path) -> None:
     assert val[("radar_map", "ddist_p95")] == pytest.approx(1.061, abs=1e-3)
     assert val[("lidar_map", "gt_rebuilt")] == 0.0 and val[("completed_map", "patches_a")] == 0.2
     assert val[("completed_map", "n_patches")] >= 1
+
+
+# -- the report hook --------------------------------------------------------------------------------------------
+def test_report_hands_map_sequences_to_the_rmap_table_builder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``pipeline report`` reaches the evaluate stage's report through the registry, which passes the map
+    sequences' records and their split/environment to ``rmap_tables.report_tables``."""
+    import types
+
+    import stages.evaluate
+    from pipeline import report as rep
+
+    seen: dict[str, Any] = {}
+
+    def report_tables(records: list[dict[str, Any]], sequences: dict[str, dict[str, Any]]) -> list[Any]:
+        seen["records"], seen["sequences"] = records, sequences
+        return [("RMap Table III (test)", ["scene", "n"], [[s, len(records)] for s in sorted(sequences)])]
+
+    fake = types.ModuleType("stages.evaluate.rmap_tables")
+    fake.report_tables = report_tables  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "stages.evaluate.rmap_tables", fake)
+    monkeypatch.setattr(stages.evaluate, "rmap_tables", fake, raising=False)
+    recs = [{"seq": s, "section": "rmap", "method": "radar_map", "metric": "cd_l2", "value": v, "features": 0}
+            for s, v in (("rmap_arpg_lab_run0", 0.651), ("demo", 0.9), ("rmap_aspen_run7", 1.2))]
+    tables = rep.build_tables(recs)
+    assert seen["sequences"] == {
+        "rmap_arpg_lab_run0": {"kind": "rmap", "scene": "arpg_lab_run0", "split": "test", "environment": "arpg_lab"},
+        "rmap_aspen_run7": {"kind": "rmap", "scene": "aspen_run7", "split": "train", "environment": "aspen"}}
+    assert {r["seq"] for r in seen["records"]} == {"rmap_arpg_lab_run0", "rmap_aspen_run7"}
+    assert tables[-1] == ("RMap Table III (test)", ["scene", "n"], [["rmap_arpg_lab_run0", "2"],
+                                                                    ["rmap_aspen_run7", "2"]])
+    assert "## RMap Table III (test)" in rep.to_markdown(recs)
+    # without map sequences the builder is not called
+    seen.clear()
+    rep.build_tables([r for r in recs if r["seq"] == "demo"])
+    assert not seen

@@ -109,7 +109,7 @@ def test_static_skip_by_source_kind_and_downstream(tmp_path: Path) -> None:
     manifest = json.loads((tmp_path / "rmap_toy" / "report" / "manifest.json").read_text())
     assert manifest["stats"]["had_build"] is False and "build" not in manifest["inputs"]
     st = {s.stage: s for s in r.status()}
-    assert st["build"].state == "unavailable" and st["build"].reason.startswith("skipped: needs 'read'")
+    assert st["build"].state == "unavailable" and st["build"].reason.startswith("needs 'read'")
     assert st["report"].state == "done"
     # a named stage that cannot run is a user error, not a silent skip
     with pytest.raises(UserError, match=r"stage 'after' cannot run for sequence 'rmap_toy': needs 'read'"):
