@@ -5,9 +5,9 @@ The orchestration layer gathers the metric records of several runs (``pipeline/r
 (``load_stages()["evaluate"].report()``, :class:`pipeline.stage.StageReport`); everything that formats
 or draws those records lives here, beside the code that computes them.
 
-Map sequences (``rmap_<scene>``): :meth:`EvaluationReport.tables` adds the tables of
-:mod:`stages.evaluate.rmap_tables` when that module provides ``report_tables(records, sequences)``
-(the paper's Tables III / IV / VI side by side; see :func:`map_set_tables`).
+Map sequences (``rmap_<scene>``): :meth:`EvaluationReport.tables` adds the paper's Tables III, IV, VI and I
+side by side with ours (:mod:`stages.evaluate.rmap_tables`), built from the gathered records alone
+(:func:`map_set_results`).
 """
 
 from __future__ import annotations
@@ -56,41 +56,66 @@ def build_tables(records: Sequence[dict[str, Any]],
         headers, rows = getattr(tables, fn)(_section(records, section))
         if rows:
             out.append((title, headers, rows))
-    out += map_set_tables(records, sequences or {})
+    out += [(t.title, list(t.headers), [list(map(str, row)) for row in t.rows])
+            for t in map_set_tables(records, sequences or {})]
     return out
 
 
-def map_set_tables(records: Sequence[dict[str, Any]], sequences: Mapping[str, Mapping[str, Any]]) -> list[Table]:
-    """The RMap paper's tables side by side for the map sequences among ``records``.
+def map_set_results(records: Sequence[Mapping[str, Any]], sequences: Mapping[str, Mapping[str, Any]]) -> list[Any]:
+    """One ``rmap_tables.SceneResult`` per map sequence among ``records``, built from the records alone.
 
-    Calls ``stages.evaluate.rmap_tables.report_tables(records, sequences)`` when that module defines it:
-    ``records`` are the gathered metric records (``seq, method, metric, value, section``; the map sequences'
-    ``rmap`` section carries ``radar_map`` / ``completed_map`` / ``lidar_map`` rows, including
-    ``lidar_map gt_rebuilt`` 0/1, ``completed_map n_patches``, ``completed_map seconds_per_patch`` and
-    ``completed_map patches_a``), ``sequences`` maps each sequence name to ``{"kind", "scene", "split",
-    "environment"}``; it returns ``[(title, headers, rows)]``. Nothing when no map sequence is present.
+    The evaluate stage's ``rmap`` section of a map sequence carries everything the paper's tables need:
+    the ``radar_map`` / ``completed_map`` / ``lidar_map`` metrics, ``lidar_map gt_rebuilt`` (1 = ground
+    truth rebuilt from published patches) and ``completed_map`` ``patches_a``, ``n_patches`` and
+    ``model_seconds`` (network seconds over all patches). Empty when ``stages.evaluate.rmap_tables`` is absent.
     """
-    map_seqs = {s for s, info in sequences.items() if info.get("kind") == "rmap"}
-    recs = [r for r in records if r.get("seq") in map_seqs]
-    if not recs:
-        return []
     try:
-        from stages.evaluate import rmap_tables  # type: ignore[attr-defined, unused-ignore]
+        from stages.evaluate import rmap_tables as rt  # type: ignore[attr-defined, unused-ignore]
     except ImportError:
         return []
-    build = getattr(rmap_tables, "report_tables", None)
-    if build is None:
+    map_seqs = [s for s, info in sequences.items() if info.get("kind") == "rmap"]
+    out = []
+    for seq in map_seqs:
+        metrics: dict[str, dict[str, float]] = {}
+        for r in records:
+            if r.get("seq") == seq and (r.get("section") in (None, "rmap")):
+                metrics.setdefault(str(r["method"]), {})[str(r["metric"])] = float(r["value"])
+        if "radar_map" not in metrics:
+            continue
+        done = metrics.get("completed_map", {})
+        a, n, secs = (done.pop(k, None) for k in ("patches_a", "n_patches", "model_seconds"))
+        done.pop("seconds_per_patch", None)
+        out.append(rt.SceneResult(
+            scene=str(sequences[seq].get("scene") or rt.scene_name(seq)), seq=seq, metrics=metrics,
+            rebuilt=metrics.get("lidar_map", {}).get("gt_rebuilt", 0.0) > 0, a_test=a,
+            n_patches=int(n) if n is not None else None, inference_s=secs))
+    return out
+
+
+def map_set_tables(records: Sequence[Mapping[str, Any]], sequences: Mapping[str, Mapping[str, Any]]) -> list[Any]:
+    """The RMap paper's Tables III, IV, VI and I side by side with ours (``rmap_tables.Table``: title, headers,
+    rows, notes) for the map sequences among ``records``; nothing without map sequences."""
+    results = map_set_results(records, sequences)
+    if not results:
         return []
-    return [(str(t), list(h), [list(map(str, r)) for r in rows])
-            for t, h, rows in build(recs, {s: dict(sequences[s]) for s in map_seqs})]
+    from stages.evaluate import rmap_tables as rt  # type: ignore[attr-defined, unused-ignore]
+
+    tables = [rt.table_iii(results), rt.table_iv(results)]
+    if any(r.a_test is not None for r in results):
+        tables.append(rt.table_vi(results))
+    tables.append(rt.table_i(results))
+    return tables
 
 
 def to_markdown(records: Sequence[dict[str, Any]], title: str = "Comparison",
                 sequences: Mapping[str, Mapping[str, Any]] | None = None) -> str:
+    """The tables as markdown; the RMap tables with the notes under them (rebuilt scenes, coverage, errata)."""
     seqs = list(dict.fromkeys(str(r["seq"]) for r in records))
     out = [f"# {title}", "", f"Sequences: {', '.join(seqs)}", ""]
+    notes = {t.title: list(t.notes) for t in map_set_tables(records, sequences or {})}
     for t, headers, rows in build_tables(records, sequences):
         out += [f"## {t}", "", tables.markdown(headers, rows), ""]
+        out += [f"- {n}" for n in notes.get(t, [])] + ([""] if notes.get(t) else [])
     return "\n".join(out).rstrip() + "\n"
 
 
