@@ -200,8 +200,7 @@ def sequences() -> None:
     rows = []
     for info in load_registry().values():
         found = info.locate()
-        expected = info.expected_locations()
-        where = str(found or (expected[0] if expected else "$COLORADAR_ROOT/" + (info.run or "")))
+        where = info.where()
         if info.kind == "simulated":
             present = "[green]yes[/]" if found else "[dim]generated on first use[/]"
         else:
@@ -320,12 +319,12 @@ def report(
             raise UserError("--seqs is required (e.g. --seqs demo,sim_hallway_loop), or pass --sweep NAME")
         records, missing = rep.report_sequences(runs, seqs)
         title = "Comparison"
-    for t in rep.build_tables(records) if sweep is None else rep.sweep_tables(records):
+    for t in rep.build_tables(records, runs_dir=runs) if sweep is None else rep.sweep_tables(records):
         out.print(rep.rich_table(*t))
     for m in missing:
         console.print(f"[yellow]note[/] {m}: no evaluation in {runs}; run `pipeline run evaluate --seq {m}`")
     if out_file is not None:
-        written = rep.write_outputs(records, out_file, title)
+        written = rep.write_outputs(records, out_file, title, runs_dir=runs)
         if sweep is None:
             written += rep.write_figures(runs, records, out_file)
         for p in written:

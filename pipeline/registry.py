@@ -5,7 +5,8 @@ from __future__ import annotations
 import importlib
 from functools import cache
 
-from pipeline.stage import Stage
+from pipeline.errors import UserError
+from pipeline.stage import Stage, StageReport
 
 #: The stages of DESIGN.md in dependency order.
 STAGE_NAMES = ("ingest", "filter", "odometry", "slam", "voxel", "patches", "complete", "evaluate", "plan")
@@ -22,3 +23,11 @@ def load_stages() -> dict[str, Stage]:
             raise RuntimeError(f"stages/{name}/stage.py exports a stage named {stage.name!r}")
         out[name] = stage
     return out
+
+
+def stage_report(stage: str = "evaluate") -> StageReport:
+    """The report hook of ``stage`` (:meth:`pipeline.stage.Stage.report`): tables and figures over many runs."""
+    rep = load_stages()[stage].report()
+    if rep is None:
+        raise UserError(f"stage '{stage}' has no report")
+    return rep

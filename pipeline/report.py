@@ -1,37 +1,59 @@
 """``pipeline report``: gather the ``evaluate`` results of several runs into one comparison.
 
-Reads ``runs/<seq>/evaluate/metrics.parquet`` for every sequence asked for and prints (or writes as
-markdown) the tables of ``stages/evaluate/tables.py``: RICH-SLAM Table III (position / yaw RMSE per
-method and sequence), the occupancy AUC per method (at the slam stage's feature count and per feature
-count) and the RMap map metrics.
+Reads ``runs/<seq>/evaluate/metrics.parquet`` for every sequence asked for (:mod:`pipeline.results`) and
+hands the records to the evaluate stage's report (``load_stages()["evaluate"].report()``, a
+:class:`pipeline.stage.StageReport`, in ``stages/evaluate/report.py``), which builds the tables and
+figures: RICH-SLAM Table III, the occupancy AUC per method, the RMap map metrics and, for map
+sequences, the RMap paper's tables side by side. This module only gathers, prints and writes files.
 """
 
 from __future__ import annotations
 
 import fnmatch
-from collections.abc import Iterable, Sequence
+import json
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from rich.table import Table
 
 from pipeline.errors import UserError
+from pipeline.registry import stage_report
+from pipeline.results import METRICS_FILE, gather, metrics_path, read_records
 from pipeline.store import RunStore
 
-METRICS_FILE = "metrics.parquet"
-
-#: (title, table builder name in stages.evaluate.tables, metric sections it reads)
-TABLES = (
-    ("Trajectories (RICH-SLAM Table III): position RMSE [m] / yaw RMSE [deg]", "trajectory_table", "trajectory"),
-    ("Occupancy AUC at the slam stage's feature count (ground-truth poses, held-out scans)", "headline_auc_table",
-     "mapping"),
-    ("Occupancy AUC per number of map features (RICH-SLAM Fig. 6)", "auc_table", "mapping"),
-    ("Maps against the lidar map (RMap Tables I, III, IV)", "rmap_table", "rmap"),
-)
+__all__ = ["METRICS_FILE", "build_tables", "comparison_table", "gather", "metrics_path", "read_records",
+           "report_sequences", "resolve_sequences", "rich_table", "sequence_context", "stage_report", "sweep_records",
+           "sweep_tables", "to_markdown", "uncertainty_curves", "write_figures", "write_outputs"]
 
 
-def metrics_path(runs_dir: Path, seq: str, stage: str = "evaluate") -> Path:
-    return RunStore(Path(runs_dir), seq).stage_dir(stage) / METRICS_FILE
+def sequence_context(seqs: Iterable[str], runs_dir: Path | None = None) -> dict[str, dict[str, Any]]:
+    """Per sequence ``{"kind", "scene", "split", "environment"}``: from the registry, else (``--source`` runs)
+    from the map set recorded in the run's voxel manifest; ``{}`` for what neither knows."""
+    from pipeline.sequences import load_registry
+
+    try:
+        registry = load_registry()
+    except UserError:
+        registry = {}
+    out: dict[str, dict[str, Any]] = {}
+    for s in seqs:
+        info = registry.get(s)
+        ctx: dict[str, Any] = {}
+        if info is not None:
+            ctx = {"kind": info.kind, "scene": info.scene or "", "split": info.split,
+                   "environment": info.environment}
+        if runs_dir is not None and (info is None or info.kind == "rmap"):
+            path = RunStore(Path(runs_dir), s).stage_dir("voxel") / "manifest.json"
+            try:
+                recorded = json.loads(path.read_text()).get("stats", {}).get("map_set")
+            except (OSError, json.JSONDecodeError):
+                recorded = None
+            if isinstance(recorded, dict):
+                ctx = {"kind": "rmap", **{k: v for k, v in recorded.items() if v not in (None, "")},
+                       **{k: v for k, v in ctx.items() if v not in (None, "")}}
+        out[s] = ctx
+    return out
 
 
 def resolve_sequences(spec: str | Sequence[str], runs_dir: Path) -> list[str]:
@@ -51,52 +73,12 @@ def resolve_sequences(spec: str | Sequence[str], runs_dir: Path) -> list[str]:
     return list(dict.fromkeys(out))
 
 
-def read_records(path: Path) -> list[dict[str, Any]]:
-    """Records of one ``metrics.parquet`` (validated)."""
-    from schemas import read_artifact
-
-    return read_artifact(path, "metrics").to_pylist()
-
-
-def gather(runs_dir: Path, seqs: Iterable[str], stage: str = "evaluate") -> tuple[list[dict[str, Any]], list[str]]:
-    """All metric records of the sequences that have them, and the names of those that do not."""
-    records: list[dict[str, Any]] = []
-    missing: list[str] = []
-    for seq in seqs:
-        path = metrics_path(runs_dir, seq, stage)
-        if not path.exists():
-            missing.append(seq)
-            continue
-        recs = read_records(path)
-        for r in recs:
-            r["seq"] = seq  # the run folder names the sequence (a --source run may carry another name)
-        records += recs
-    return records, missing
-
-
-def _section(records: Sequence[dict[str, Any]], section: str) -> list[dict[str, Any]]:
-    out = []
-    for r in records:
-        s = r.get("section")
-        if s is None:  # files without the section column: infer from the metric name
-            m = str(r["metric"])
-            s = "trajectory" if m.startswith("ate_") or r["method"] == "groundtruth" else \
-                "mapping" if m in ("auc", "fit_seconds") else "uncertainty" if m.startswith("uncertainty") else "rmap"
-        if s == section:
-            out.append(r)
-    return out
-
-
-def build_tables(records: Sequence[dict[str, Any]]) -> list[tuple[str, list[str], list[list[str]]]]:
-    """(title, headers, rows) for every table that has rows."""
-    from stages.evaluate import tables
-
-    out = []
-    for title, fn, section in TABLES:
-        headers, rows = getattr(tables, fn)(_section(records, section))
-        if rows:
-            out.append((title, headers, rows))
-    return out
+def build_tables(records: Sequence[dict[str, Any]], sequences: Mapping[str, Mapping[str, Any]] | None = None,
+                 runs_dir: Path | None = None) -> list[tuple[str, list[str], list[list[str]]]]:
+    """(title, headers, rows) for every table that has rows (the evaluate stage's report)."""
+    if sequences is None:
+        sequences = sequence_context(dict.fromkeys(str(r["seq"]) for r in records), runs_dir)
+    return stage_report().tables(records, sequences)
 
 
 def rich_table(title: str, headers: Sequence[str], rows: Sequence[Sequence[str]]) -> Table:
@@ -115,27 +97,25 @@ def comparison_table(runs: Path, seqs: Sequence[str]) -> Any:
     records, _ = gather(Path(runs), seqs)
     if not records:
         return None
-    return Group(*[rich_table(*t) for t in build_tables(records)])
+    return Group(*[rich_table(*t) for t in build_tables(records, runs_dir=Path(runs))])
 
 
-def to_markdown(records: Sequence[dict[str, Any]], title: str = "Comparison") -> str:
-    from stages.evaluate import tables
-
-    seqs = list(dict.fromkeys(str(r["seq"]) for r in records))
-    out = [f"# {title}", "", f"Sequences: {', '.join(seqs)}", ""]
-    for t, headers, rows in build_tables(records):
-        out += [f"## {t}", "", tables.markdown(headers, rows), ""]
-    return "\n".join(out).rstrip() + "\n"
+def to_markdown(records: Sequence[dict[str, Any]], title: str = "Comparison",
+                sequences: Mapping[str, Mapping[str, Any]] | None = None, runs_dir: Path | None = None) -> str:
+    if sequences is None:
+        sequences = sequence_context(dict.fromkeys(str(r["seq"]) for r in records), runs_dir)
+    return stage_report().markdown(records, title, sequences)
 
 
-def write_outputs(records: Sequence[dict[str, Any]], out: Path, title: str) -> list[Path]:
+def write_outputs(records: Sequence[dict[str, Any]], out: Path, title: str,
+                  runs_dir: Path | None = None) -> list[Path]:
     """``out`` (markdown) and the combined long table beside it (``<out>.parquet``)."""
     import numpy as np
 
     from schemas import write_artifact
 
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(to_markdown(records, title))
+    out.write_text(to_markdown(records, title, runs_dir=runs_dir))
     cols: dict[str, Any] = {k: [r.get(k) for r in records] for k in ("seq", "method", "metric")}
     cols["value"] = np.array([r["value"] for r in records], np.float64)
     cols["features"] = np.array([int(r.get("features") or 0) for r in records], np.int32)
@@ -164,23 +144,10 @@ def uncertainty_curves(runs_dir: Path, seqs: Sequence[str]) -> dict[str, Any]:
 
 
 def write_figures(runs_dir: Path, records: Sequence[dict[str, Any]], out: Path) -> list[Path]:
-    """Figures across sequences beside ``out``: Fig. 6 (AUC per feature count, one panel per sequence) and
-    Fig. 10 right (the slam map's median and 25-75 % uncertainty over time, one curve per sequence)."""
-    from pipeline.sweep import plot_auc_vs_features
-    from stages.evaluate import figures
-
+    """Figures across sequences beside ``out`` (the evaluate stage's report draws them): Fig. 6 and Fig. 10
+    right from the slam stages' ``map_stats.parquet``."""
     seqs = list(dict.fromkeys(str(r["seq"]) for r in records))
-    written = []
-    with_auc = [s for s in seqs if any(r["seq"] == s and r["metric"] == "auc" and "@" in str(r["method"])
-                                       for r in records)]
-    if with_auc:
-        written.append(plot_auc_vs_features(out.with_name(out.stem + "_auc.png"), records, with_auc,
-                                            "occupancy AUC vs number of map features (ground-truth poses)"))
-    curves = uncertainty_curves(runs_dir, seqs)
-    if curves:
-        written.append(figures.plot_uncertainty(out.with_name(out.stem + "_uncertainty.png"), curves,
-                                                "RICH-SLAM map: normalised predictive uncertainty (median, 25-75 %)"))
-    return written
+    return stage_report().figures(records, out, uncertainty_curves(runs_dir, seqs))
 
 
 def report_sequences(runs_dir: Path, spec: str) -> tuple[list[dict[str, Any]], list[str]]:
@@ -214,28 +181,5 @@ def sweep_records(runs_dir: Path, name: str, seqs: str | None = None) -> list[di
 
 
 def sweep_tables(records: Sequence[dict[str, Any]]) -> list[tuple[str, list[str], list[list[str]]]]:
-    """AUC per point and method (the sweep's point names as rows), and Fig. 6 means over the points."""
-    from pipeline.sweep import auc_by_features
-    from stages.evaluate.tables import fmt
-
-    out = []
-    seqs = list(dict.fromkeys(str(r["seq"]) for r in records))
-    head = [r for r in records if r["metric"] == "auc" and "@" not in str(r["method"])]
-    if head:
-        methods = list(dict.fromkeys(str(r["method"]) for r in head))
-        points = list(dict.fromkeys(str(r.get("point", "")) for r in head))
-        d = {(r["seq"], r.get("point", ""), r["method"]): r["value"] for r in head}
-        rows = [[s, p, *[fmt(d.get((s, p, m))) for m in methods]] for s in seqs for p in points
-                if any((s, p, m) in d for m in methods)]
-        out.append(("AUC per sweep point", ["sequence", "point", *methods], rows))
-    for s in seqs:
-        agg = auc_by_features(records, s)
-        if agg:
-            counts = sorted({a[1] for a in agg})
-            methods = list(dict.fromkeys(a[0] for a in agg))
-            cell = {(a[0], a[1]): f"{a[2]:.3f}±{a[3]:.3f}" for a in agg}
-            n = max(a[4] for a in agg)
-            out.append((f"{s}: AUC per number of map features, mean ± std over {n} point(s)",
-                        ["method", *map(str, counts)], [[m, *[cell.get((m, c), "–") for c in counts]]
-                                                        for m in methods]))
-    return out
+    """AUC per point and method, and Fig. 6 means over the points (the evaluate stage's report)."""
+    return stage_report().sweep_tables(records)

@@ -1,4 +1,12 @@
-"""Resolving the stage DAG, computing keys, skipping cached stages and running the rest."""
+"""Resolving the stage DAG, computing keys, skipping cached stages and running the rest.
+
+Stages that cannot run for a sequence are *skipped*, with a one-line reason, together with every stage
+that needs them (an optional input that is skipped is just left out): statically when the source does not
+provide what the stage needs or its parameters rule it out (:meth:`Stage.skip_reason`, e.g. a map
+sequence has no log to ingest), or once its inputs are finished when they lack something
+(:meth:`Stage.skip_reason_for_inputs`, e.g. a radar + IMU log has no ground truth). ``run all`` then ends
+normally (exit 0); a stage named explicitly that cannot run is a user error.
+"""
 
 from __future__ import annotations
 
@@ -82,11 +90,24 @@ class Runner:
         self.reuse = [RunStore(Path(d), seq.name) for d in reuse_from if Path(d).resolve() != Path(runs_dir).resolve()]
         self._params: dict[str, StageParams] = {}
         self._keys: dict[str, str] = {}
+        #: stage -> (reason, the stage whose reason it is) for stages known to be skipped
+        self._skips: dict[str, tuple[str, str] | None] = {}
+        self._data_skips: dict[str, tuple[str, str]] = {}
+        self._explicit: list[str] = []
         self._check_names()
+
+    @property
+    def kind_params(self) -> Overrides:
+        """Parameters every sequence of this source kind starts from (``sources.DEFAULT_PARAMS``), for the
+        stages of this registry."""
+        from pipeline.sequences import kind_defaults
+
+        return {k: v for k, v in kind_defaults(self.seq.kind).items() if k in self.registry}
 
     def _check_names(self) -> None:
         for source, layer in (
             (f"workflow {self.workflow.path or self.workflow.name}", self.workflow.params),
+            (f"defaults of {self.seq.kind} sequences", self.kind_params),
             (f"sequence '{self.seq.name}' params", self.seq.params),
             ("--set", self.overrides),
         ):
@@ -105,6 +126,7 @@ class Runner:
         if name not in self._params:
             layers = [
                 (f"workflow '{self.workflow.name}'", self.workflow.params.get(name, {})),
+                (f"{self.seq.kind} sequences", self.kind_params.get(name, {})),
                 (f"sequence '{self.seq.name}'", self.seq.params.get(name, {})),
                 ("--set", self.overrides.get(name, {})),
             ]
@@ -114,8 +136,49 @@ class Runner:
     def inputs_of(self, name: str) -> list[str]:
         stage = self.registry[name]
         required = list(stage.input_stages(self.params(name)))
-        optional = [s for s in stage.optional_inputs if s in self.registry and self.available(s)]
-        return required + [s for s in optional if s not in required]
+        optional = [s for s in stage.optional_inputs if s in self.registry and self.available(s)
+                    and s not in required and self.skipped(s) is None]
+        return required + optional
+
+    # -- skipping -------------------------------------------------------------------------------------------
+    def skipped(self, name: str, _stack: tuple[str, ...] = ()) -> tuple[str, str] | None:
+        """(reason, origin stage) when ``name`` cannot run for this sequence (known so far), else None."""
+        if name in self._data_skips:
+            return self._data_skips[name]
+        if name in self._skips:
+            return self._skips[name]
+        if name in _stack:
+            raise RuntimeError(f"stage dependency cycle: {' -> '.join((*_stack, name))}")
+        stage = self.registry[name]
+        own = stage.skip_reason(self.seq, self.params(name))
+        out: tuple[str, str] | None = (own, name) if own else None
+        if out is None:
+            for dep in stage.input_stages(self.params(name)):
+                up = self.skipped(dep, (*_stack, name)) if dep in self.registry else None
+                if up is not None:
+                    out = up
+                    break
+        self._skips[name] = out
+        return out
+
+    def skip_message(self, name: str) -> str:
+        """The one-line reason printed for a skipped stage."""
+        found = self.skipped(name)
+        if found is None:
+            return ""
+        reason, origin = found
+        return reason if origin == name else f"needs '{origin}', skipped: {reason}"
+
+    def _skip_for_inputs(self, name: str) -> str | None:
+        """Ask the stage, once its inputs are finished, whether it can run on them; remember a skip."""
+        stage = self.registry[name]
+        dirs = {i: self.store.stage_dir(i) for i in self.inputs_of(name)}
+        reason = stage.skip_reason_for_inputs(self.seq, self.params(name), dirs)
+        if reason:
+            self._data_skips[name] = (reason, name)
+            self._skips.clear()  # downstream skips and optional inputs change with it
+            self._keys.clear()
+        return reason
 
     def available(self, name: str) -> bool:
         return self.registry[name].unavailable_reason() is None
@@ -165,6 +228,8 @@ class Runner:
         reason = self.registry[name].unavailable_reason()
         if reason:
             return StageStatus(name, "unavailable", reason)
+        if self.skipped(name) is not None:
+            return StageStatus(name, "unavailable", self.skip_message(name))
         for dep in self.inputs_of(name):
             dep_reason = self.registry[dep].unavailable_reason()
             if dep_reason:
@@ -205,7 +270,7 @@ class Runner:
 
     # -- running ----------------------------------------------------------------------------------------------
     def resolve_targets(self, targets: Iterable[str]) -> tuple[list[str], list[StageOutcome]]:
-        """Expand ``all`` into the workflow's available stages; refuse named stages that cannot run."""
+        """Expand ``all`` into the workflow's stages that can run; refuse named stages that cannot."""
         targets = list(targets)
         skipped: list[StageOutcome] = []
         out: list[str] = []
@@ -216,6 +281,8 @@ class Runner:
                     blocked = [d for d in self.registry[s].input_stages(self.params(s)) if not self.available(d)]
                     if reason or blocked:
                         skipped.append(StageOutcome(s, "skipped", reason=reason or f"input '{blocked[0]}' unavailable"))
+                    elif self.skipped(s) is not None:
+                        skipped.append(StageOutcome(s, "skipped", reason=self.skip_message(s)))
                     else:
                         out.append(s)
                 continue
@@ -223,12 +290,15 @@ class Runner:
                 from pipeline.config import did_you_mean
 
                 raise UserError(f"unknown stage '{t}'{did_you_mean(t, [*self.registry, 'all'])}")
+            if self.skipped(t) is not None:
+                raise UserError(f"stage '{t}' cannot run for sequence '{self.seq.name}': {self.skip_message(t)}")
             out.append(t)
         for name in self.closure(out):
             reason = self.registry[name].unavailable_reason()
             if reason:
                 raise UserError(f"stage '{name}' cannot run: {reason}")
-        return out, skipped
+        self._explicit = [t for t in targets if t != "all"]
+        return list(dict.fromkeys(out)), skipped
 
     def run(self, targets: Iterable[str], force: Iterable[str] = (), keep_going: bool = True) -> list[StageOutcome]:
         """Bring ``targets`` up to date: run missing or stale stages (and upstream), skip cached ones.
@@ -237,6 +307,8 @@ class Runner:
         failed, :class:`StagesFailed` is raised at the end carrying every outcome.
         """
         wanted, outcomes = self.resolve_targets(targets)
+        for o in outcomes:
+            self.console.print(f"[yellow]{o.stage:<9} skipped[/]: {escape(o.reason)}")
         force = set(force)
         if "all" in force:
             force = set(wanted)
@@ -251,6 +323,11 @@ class Runner:
                     skip = StageOutcome(name, "skipped", reason=f"input '{blocked[0]}' failed")
                     outcomes.append(skip)
                     failed.append(skip)
+                    continue
+                if self.skipped(name) is not None or self._skip_for_inputs(name):
+                    skip = StageOutcome(name, "skipped", reason=self.skip_message(name))
+                    outcomes.append(skip)
+                    self.console.print(f"[yellow]{name:<9} skipped[/]: {escape(skip.reason)}")
                     continue
                 st = self.stage_status(name)
                 if st.state == "done" and name not in force:
@@ -279,6 +356,9 @@ class Runner:
         errors = [o for o in outcomes if o.error is not None]
         if errors:
             raise StagesFailed(outcomes, errors[0].error)  # type: ignore[arg-type]
+        named = [o for o in outcomes if o.action == "skipped" and o.stage in self._explicit]
+        if named:
+            raise UserError(f"stage '{named[0].stage}' cannot run for sequence '{self.seq.name}': {named[0].reason}")
         return outcomes
 
     def _reuse(self, name: str) -> bool:

@@ -1,17 +1,18 @@
 """The sequence registry (``data/sequences.toml``) and where each sequence's data is found.
 
-Kinds:
+Kinds (the source layer in ``sources/`` does the locating and reading for each):
 - ``simulated``: built-in worlds, generated on first use into the data cache by the simulator and then
-  ingested through the same readers as real data;
-- ``coloradar``: a ColoRadar run looked up under ``$COLORADAR_ROOT`` (bag or extracted folder);
-- ``source``: an ad-hoc path given with ``--source``.
+  ingested through the same readers as real data (:mod:`sources.simulated`);
+- ``coloradar``: a ColoRadar run looked up under ``$COLORADAR_ROOT`` (bag or extracted folder,
+  :mod:`sources.recorded`);
+- ``source``: an ad-hoc log given with ``--source``;
+- ``rmap``: a published map set (the RMap authors' voxel maps of one scene) under ``$RMAP_ROOT`` or given
+  with ``--source DIR`` (:mod:`sources.mapset`); it enters the DAG at the voxel stage's outputs.
 """
 
 from __future__ import annotations
 
 import fnmatch
-import hashlib
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,8 +20,12 @@ from typing import Any
 
 import tomllib
 
+import sources
 from pipeline.errors import UserError
-from pipeline.paths import cache_dir, data_dir
+from pipeline.paths import data_dir
+from sources import mapset, recorded, simulated
+
+KINDS = tuple(sources.PROVIDES)
 
 
 @dataclass(frozen=True)
@@ -36,71 +41,96 @@ class SequenceInfo:
     duration: float = 60.0
     seed: int = 0
     format: str = "bag"
+    #: map sets: the scene (``arpg_lab_run0``), its environment and RMap split (``test`` / ``train``)
+    scene: str | None = None
+    environment: str = ""
+    split: str = ""
     #: explicit source path (``--source``)
     source: Path | None = None
     params: dict[str, dict[str, Any]] = field(default_factory=dict)
 
+    # -- what the source provides -----------------------------------------------------------------------
+    @property
+    def provides(self) -> frozenset[str]:
+        """``{"log"}`` (sensor streams for ingest) or ``{"maps"}`` (voxel maps, the voxel stage's outputs)."""
+        return sources.provides(self.kind)
+
+    @property
+    def kind_label(self) -> str:
+        return sources.label(self.kind)
+
     # -- locating data ----------------------------------------------------------------------------------
     def expected_locations(self) -> list[Path]:
         """Where the data is looked for, in order."""
+        if self.kind == "rmap":
+            if self.source is not None:
+                return [self.source]
+            return mapset.locations(self.scene or self.name)
         if self.kind == "source":
             assert self.source is not None
             return [self.source]
         if self.kind == "simulated":
             return [self.simulated_path()]
-        root = os.environ.get("COLORADAR_ROOT")
-        if not root or self.run is None:
-            return []
-        short = self.run.split("_", 3)[-1] if self.run[:1].isdigit() else self.run
-        base = Path(root)
-        names = dict.fromkeys([self.run, short])
-        out: list[Path] = []
-        for n in names:
-            out += [base / f"{n}.bag", base / n, base / "bags" / f"{n}.bag", base / f"{n}.mcap"]
-        return out
+        return recorded.coloradar_locations(self.run)
 
     def locate(self) -> Path | None:
         """The first existing data location, or None."""
+        if self.kind == "rmap":
+            root = self.map_root_or_none()
+            return root
         return next((p for p in self.expected_locations() if p.exists()), None)
 
+    def where(self) -> str:
+        """Where the data is (or is expected), for listings."""
+        found = self.locate()
+        if found is not None and self.kind == "rmap":
+            scene = self.scene or self.name
+            layout = mapset.detect_layout(found, scene)
+            return str(mapset.scene_files(found, scene, layout)["radar"]) if layout else str(found)
+        if found is not None:
+            return str(found)
+        expected = self.expected_locations()
+        if expected:
+            return str(expected[0])
+        if self.kind == "rmap":
+            return f"${mapset.ROOT_VAR}/data/ply/{self.scene}_radar.ply or ${mapset.ROOT_VAR}/{self.scene}/"
+        return f"${recorded.ROOT_VAR}/{self.run or ''}"
+
     def simulated_path(self) -> Path:
-        spec = json.dumps(
-            {"world": self.world, "duration": self.duration, "seed": self.seed, "format": self.format,
-             **_simulator_fingerprint(self.world or self.name)},
-            sort_keys=True,
-        )
-        digest = hashlib.sha256(spec.encode()).hexdigest()[:10]
-        suffix = ".bag" if self.format == "bag" else ""
-        return cache_dir() / "sequences" / f"{self.name}-{digest}" / f"{self.name}{suffix}"
+        return simulated.simulated_path(self.name, self.world, self.duration, self.seed, self.format)
+
+    def map_root_or_none(self) -> Path | None:
+        """The folder holding this map sequence's scene (either layout), or None."""
+        scene = self.scene or self.name
+        if self.source is not None:
+            return self.source if mapset.detect_layout(self.source, scene) else None
+        value = os.environ.get(mapset.ROOT_VAR)
+        if not value:
+            return None
+        root = Path(value).expanduser()
+        return root if root.is_dir() and mapset.detect_layout(root, scene) else None
+
+    def map_root(self) -> Path:
+        """The folder holding this map sequence's scene; a one-line error naming what to set otherwise."""
+        scene = self.scene or self.name
+        if self.source is not None:
+            if mapset.detect_layout(self.source, scene) is None:
+                raise UserError(f"--source {self.source}: no maps of scene '{scene}' in either layout")
+            return self.source
+        return mapset.root_for(scene)
 
     def resolve_source(self, generate: bool = True) -> Path:
         """Path of the sequence data, generating a simulated sequence on first use."""
+        if self.kind == "rmap":
+            return self.map_root()
         found = self.locate()
         if found is not None:
             return found
         if self.kind == "simulated" and generate:
-            from simulator import generate_sequence
-
-            return generate_sequence(self)
+            return simulated.generate(self)
         if self.kind == "coloradar":
-            if not os.environ.get("COLORADAR_ROOT"):
-                raise UserError(
-                    f"sequence '{self.name}' ({self.run}): COLORADAR_ROOT is not set; point it at the folder "
-                    f"holding the ColoRadar bags or extracted runs, or use --source PATH"
-                )
-            tried = ", ".join(str(p) for p in self.expected_locations()[:2])
-            raise UserError(f"sequence '{self.name}': no data found (looked for {tried}, ...); "
-                            f"download {self.run} or use --source PATH")
+            raise recorded.missing_log_error(self.name, self.run, self.expected_locations())
         raise UserError(f"sequence '{self.name}': source {self.expected_locations()[0]} does not exist")
-
-
-def _simulator_fingerprint(world: str) -> dict[str, str]:
-    """Simulator code and world-file hashes, so a changed simulator or world regenerates the sequence."""
-    try:
-        from simulator import cache_fingerprint
-    except ImportError:
-        return {}
-    return cache_fingerprint(world)
 
 
 def _registry_path() -> Path:
@@ -124,17 +154,30 @@ def load_registry(path: Path | None = None) -> dict[str, SequenceInfo]:
             raise UserError(
                 f"{path}: sequence '{name}' has unknown keys {sorted(unknown)} (allowed: {sorted(allowed)})"
             )
+        kind = table.get("kind")
+        if kind not in KINDS:
+            raise UserError(f"{path}: sequence '{name}' has kind {kind!r}; use one of {', '.join(KINDS)}")
+        if kind == "rmap" and not table.get("scene"):
+            raise UserError(f"{path}: map sequence '{name}' needs scene = \"<scene>\" (e.g. arpg_lab_run0)")
         out[name] = SequenceInfo(name=name, **table)
     return out
 
 
+def kind_defaults(kind: str) -> dict[str, dict[str, Any]]:
+    """Parameters every sequence of ``kind`` starts from (``sources.DEFAULT_PARAMS``); the runner layers them
+    above the workflow's and below the sequence's own ``params`` and ``--set``."""
+    return {stage: dict(values) for stage, values in sources.DEFAULT_PARAMS.get(kind, {}).items()}
+
+
 def get_sequence(name: str, registry: dict[str, SequenceInfo] | None = None) -> SequenceInfo:
-    from pipeline.config import did_you_mean
+    import difflib  # not pipeline.config.did_you_mean: config imports the stage contract, which names this module
 
     registry = registry if registry is not None else load_registry()
     if name not in registry:
+        close = difflib.get_close_matches(name, list(registry), n=1, cutoff=0.5)
+        hint = f"; did you mean '{close[0]}'?" if close else ""
         raise UserError(
-            f"unknown sequence '{name}'{did_you_mean(name, registry)} (see `pipeline sequences`, "
+            f"unknown sequence '{name}'{hint} (see `pipeline sequences`, "
             f"or pass --source PATH for unregistered data)"
         )
     return registry[name]
@@ -157,20 +200,24 @@ def expand_sequences(pattern: str, registry: dict[str, SequenceInfo] | None = No
 
 
 def source_sequence(path: Path, name: str | None, dataset: str) -> SequenceInfo:
-    """An unregistered sequence from ``--source PATH``."""
+    """An unregistered sequence from ``--source PATH``: a log, or one scene of a map set (either layout)."""
     if not path.exists():
         raise UserError(f"--source {path}: no such file or folder")
-    stem = path.name.removesuffix(".bag").removesuffix(".mcap").removesuffix(".db3") or "source"
-    return SequenceInfo(name=name or stem, kind="source", dataset=dataset, source=path.resolve())
+    path = path.resolve()
+    scenes = mapset.scenes_in(path) if path.is_dir() else []
+    if scenes:
+        wanted = name.removeprefix("rmap_") if name else None
+        if wanted is not None and wanted in scenes:
+            scene = wanted
+        elif len(scenes) == 1:
+            scene = scenes[0]
+        else:
+            raise UserError(f"--source {path}: holds {len(scenes)} map scenes ({', '.join(scenes[:4])}, ...); "
+                            f"name one with --seq rmap_<scene>")
+        return SequenceInfo(name=name or f"rmap_{scene}", kind="rmap", scene=scene, source=path)
+    return SequenceInfo(name=name or recorded.log_stem(path), kind="source", dataset=dataset, source=path)
 
 
 def source_fingerprint(path: Path) -> dict[str, Any]:
-    """Cheap identity of a data source for cache keys: path, sizes and mtimes (not a content hash)."""
-    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
-    h = hashlib.sha256()
-    total = 0
-    for f in files:
-        st = f.stat()
-        total += st.st_size
-        h.update(f"{f.relative_to(path) if path.is_dir() else f.name}:{st.st_size}:{st.st_mtime_ns}".encode())
-    return {"path": str(path), "bytes": total, "files": len(files), "digest": h.hexdigest()[:16]}
+    """Cheap identity of a data source for cache keys (see :func:`sources.recorded.fingerprint`)."""
+    return recorded.fingerprint(path)

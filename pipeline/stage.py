@@ -11,12 +11,12 @@ import hashlib
 import importlib.util
 import inspect
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 from pydantic import BaseModel, ConfigDict
 from rich.console import Console
@@ -28,6 +28,34 @@ from pipeline.errors import UserError
 if TYPE_CHECKING:
     from pipeline.recording import StageRecording
     from pipeline.sequences import SequenceInfo
+
+
+#: a report table: (title, headers, rows of cells)
+ReportTable = tuple[str, list[str], list[list[str]]]
+
+
+class StageReport(Protocol):
+    """What a stage offers ``pipeline report`` and sweeps: tables and figures over the metric records of many
+    runs (``{seq, method, metric, value, section, ...}``, gathered by the orchestration layer).
+
+    ``sequences`` maps each sequence name to ``{"kind", "scene", "split", "environment"}`` (what the registry
+    or the run knows), so reports can split map sequences by the paper's test/train split."""
+
+    sweep_figure_kinds: Sequence[str]
+
+    def tables(self, records: Sequence[dict[str, Any]],
+               sequences: Mapping[str, Mapping[str, Any]] | None = None) -> list[ReportTable]: ...
+
+    def markdown(self, records: Sequence[dict[str, Any]], title: str,
+                 sequences: Mapping[str, Mapping[str, Any]] | None = None) -> str: ...
+
+    def figures(self, records: Sequence[dict[str, Any]], out: Path, curves: Mapping[str, Any]) -> list[Path]: ...
+
+    def sweep_tables(self, records: Sequence[dict[str, Any]]) -> list[ReportTable]: ...
+
+    def sweep_figures(self, kind: str, root: Path, name: str, description: str, points: Sequence[Any],
+                      seqs: Sequence[str], records: Sequence[Mapping[str, Any]],
+                      meta: Mapping[str, Any]) -> list[Path]: ...
 
 
 class StageParams(BaseModel):
@@ -54,6 +82,23 @@ class Stage(ABC):
     requires: ClassVar[tuple[str, ...]] = ()
     requires_extra: ClassVar[str] = ""
     implemented: ClassVar[bool] = True
+    #: what the sequence's source must provide (``sources.PROVIDES``: ``log`` = sensor streams, ``maps`` =
+    #: published voxel maps); the runner skips the stage, and everything that needs it, when it does not
+    needs: ClassVar[frozenset[str]] = frozenset()
+
+    def skip_reason(self, seq: SequenceInfo, params: StageParams) -> str | None:
+        """Why this stage cannot run for ``seq`` at all (one line), or None. Known before anything runs
+        (the source kind, the parameters); the default checks :attr:`needs` against the source."""
+        missing = sorted(self.needs - seq.provides)
+        if missing:
+            return f"'{seq.name}' is a {seq.kind_label}, it has no {' or '.join(missing)}"
+        return None
+
+    def skip_reason_for_inputs(self, seq: SequenceInfo, params: StageParams,
+                               input_dirs: Mapping[str, Path]) -> str | None:
+        """Why this stage cannot run on what its inputs hold (one line, e.g. "the log has no lidar"), or
+        None. Called once every input is finished, before the stage would run or be taken from the cache."""
+        return None
 
     def input_stages(self, params: StageParams) -> tuple[str, ...]:
         """Upstream stages for these parameters (override when a parameter picks an input)."""
@@ -62,6 +107,10 @@ class Stage(ABC):
     def key_material(self, seq: SequenceInfo, params: StageParams) -> dict[str, Any]:
         """Extra values that enter the cache key (e.g. the fingerprint of a source bag)."""
         return {}
+
+    def report(self) -> StageReport | None:
+        """Tables and figures over many runs of this stage (``pipeline report``); None when it has none."""
+        return None
 
     def missing_requirements(self) -> list[str]:
         return [m for m in self.requires if importlib.util.find_spec(m) is None]
@@ -169,6 +218,17 @@ class StageContext:
                 prog.advance(task, n)
 
             yield advance
+
+
+def parquet_rows(path: Path) -> int | None:
+    """Row count of a Parquet file from its footer (cheap), or None when it is absent or unreadable."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        return int(pq.ParquetFile(path).metadata.num_rows)
+    except (OSError, pa.ArrowInvalid):
+        return None
 
 
 def blas_threads(n: int) -> AbstractContextManager[Any]:

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
-import numpy as np
 import typer
 from typer.exceptions import TyperException
 
@@ -186,7 +185,7 @@ def gather_sweep(root: Path, points: Sequence[SweepPoint], seqs: Sequence[str], 
     """One long table of every point's metrics, with ``point`` and ``params`` (JSON) columns; None when empty."""
     import pyarrow as pa
 
-    from pipeline.report import gather
+    from pipeline.results import gather
 
     cols: dict[str, list[Any]] = {k: [] for k in ("seq", "method", "metric", "value", "features", "section",
                                                   "point", "params")}
@@ -211,120 +210,21 @@ def gather_sweep(root: Path, points: Sequence[SweepPoint], seqs: Sequence[str], 
 
 
 # -- figures ----------------------------------------------------------------------------------------------------
-def auc_by_features(records: Sequence[Mapping[str, Any]],
-                    seq: str | None = None) -> list[tuple[str, int, float, float, int]]:
-    """(method, features, mean, std, n) of ``<method>@<count>`` AUC rows over all points (seeds)."""
-    from stages.evaluate.tables import split_method
-
-    groups: dict[tuple[str, int], list[float]] = {}
-    for r in records:
-        if r["metric"] != "auc" or "@" not in str(r["method"]) or (seq is not None and r["seq"] != seq):
-            continue
-        m, n = split_method(str(r["method"]))
-        groups.setdefault((m, n), []).append(float(r["value"]))
-    return [(m, n, float(np.mean(v)), float(np.std(v)), len(v)) for (m, n), v in sorted(groups.items())]
-
-
 def plot_sweep(wf: Workflow, root: Path, points: Sequence[SweepPoint], seqs: Sequence[str],
                records: Sequence[Mapping[str, Any]]) -> list[Path]:
-    """The figure named by ``[workflow] figure``; nothing when it names none."""
+    """The figure named by ``[workflow] figure`` (drawn by the evaluate stage's report); nothing when it names
+    none."""
+    from pipeline.registry import stage_report
+
     meta = workflow_meta(wf)
     kind = meta.get("figure")
     if kind is None:
         return []
-    if kind == "auc_vs_features":
-        return [plot_auc_vs_features(root / f"{wf.name}.png", records, seqs, wf.description)]
-    if kind == "hyperparameter_grid":
-        return [plot_hyperparameter_grid(root / f"{wf.name}_{seq}.png", root, points, seq,
-                                         str(meta.get("figure_method", "hilbert_gp")), records) for seq in seqs]
-    raise UserError(f"{wf.path}: [workflow] figure = {kind!r}; known: auc_vs_features, hyperparameter_grid")
-
-
-def plot_auc_vs_features(path: Path, records: Sequence[Mapping[str, Any]], seqs: Sequence[str],
-                         title: str = "") -> Path:
-    """Fig. 6: one panel per sequence, AUC (mean and +-1 std over the points) against the feature count."""
-    from stages.evaluate import figures
-
-    plt = figures._plt()
-    n = len(seqs)
-    fig, axes = plt.subplots(1, n, figsize=(5.5 * n, 4.2), squeeze=False, constrained_layout=True, sharey=True)
-    for ax, seq in zip(axes[0], seqs, strict=True):
-        rows = auc_by_features(records, seq)
-        for m in dict.fromkeys(r[0] for r in rows):
-            sel = [r for r in rows if r[0] == m]
-            x = np.array([r[1] for r in sel], float)
-            y = np.array([r[2] for r in sel])
-            s = np.array([r[3] for r in sel])
-            ax.plot(x, y, "o-", color=figures.colour(m), label=figures.label(m))
-            ax.fill_between(x, y - s, y + s, color=figures.colour(m), alpha=0.15)
-        ax.set_title(seq)
-        ax.set_xlabel("number of map features")
-        ax.grid(alpha=0.3)
-    axes[0][0].set_ylabel("AUC (held-out scans), mean ± std over seeds")
-    axes[0][0].legend(fontsize=8)
-    if title:
-        import textwrap
-
-        fig.suptitle(textwrap.fill(title, 30 + 45 * n), fontsize=10)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
-
-
-def plot_hyperparameter_grid(path: Path, root: Path, points: Sequence[SweepPoint], seq: str, method: str,
-                             records: Sequence[Mapping[str, Any]]) -> Path:
-    """Fig. 7: the ground-truth-pose map of every point, rows = first swept key, columns = second, AUC in titles."""
-    from schemas import read_artifact
-    from stages.evaluate import figures
-
-    plt = figures._plt()
-    keys = list(points[0].values()) if points else []
-    rows_vals = list(dict.fromkeys(json.dumps(p.values()[keys[0]]) for p in points)) if keys else [""]
-    cols_vals = list(dict.fromkeys(json.dumps(p.values()[keys[1]]) for p in points)) if len(keys) > 1 else [""]
-    auc = {r["point"]: r["value"] for r in records
-           if r["seq"] == seq and r["method"] == method and r["metric"] == "auc"}
-    ell = {r["point"]: r["value"] for r in records
-           if r["seq"] == seq and r["method"] == method and r["metric"] == "lengthscale_m"}
-    fig, axes = plt.subplots(len(rows_vals), len(cols_vals), figsize=(4.2 * len(cols_vals), 3.4 * len(rows_vals)),
-                             squeeze=False, constrained_layout=True)
-    im = None
-    for p in points:
-        v = p.values()
-        i = rows_vals.index(json.dumps(v[keys[0]])) if keys else 0
-        j = cols_vals.index(json.dumps(v[keys[1]])) if len(keys) > 1 else 0
-        ax = axes[i][j]
-        grid_path = root / p.name / seq / "evaluate" / "gt_map_grid.parquet"
-        if grid_path.exists():
-            t = read_artifact(grid_path, "map_grid", columns=["x", "y", "occupancy"])
-            x, y, o = (t[c].to_numpy() for c in ("x", "y", "occupancy"))
-            gx, gy = np.unique(x), np.unique(y)
-            img = np.full((len(gx), len(gy)), np.nan)
-            img[np.searchsorted(gx, x), np.searchsorted(gy, y)] = o
-            im = ax.imshow(img.T, origin="lower", extent=(gx[0], gx[-1], gy[0], gy[-1]), cmap="viridis",
-                           vmin=0, vmax=1, interpolation="nearest")
-        else:
-            ax.text(0.5, 0.5, "no map", ha="center", va="center", transform=ax.transAxes)
-        label = ", ".join(f"{k.split('.', 1)[1]}={val}" for k, val in v.items())
-        a, lm = auc.get(p.name), ell.get(p.name)
-        sub = ", ".join(s for s in (f"l = {lm:g} m" if lm is not None else "",
-                                    f"AUC {a:.3f}" if a is not None else "") if s)
-        ax.set_title(label + ("\n" + sub if sub else ""), fontsize=9)
-        ax.set_aspect("equal")
-        ax.tick_params(labelsize=7)
-    if im is not None:
-        fig.colorbar(im, ax=axes, shrink=0.6, label="occupancy probability")
-    fig.suptitle(f"{seq}: {method} maps on ground-truth poses", fontsize=11)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def summary_rows(records: Sequence[Mapping[str, Any]], metric: str = "auc") -> list[list[str]]:
-    """(seq, point, method, value) rows of one metric, for printing."""
-    from stages.evaluate.tables import fmt
-
-    return [[str(r["seq"]), str(r["point"]), str(r["method"]), fmt(float(r["value"]))]
-            for r in records if r["metric"] == metric]
+    rep = stage_report()
+    known = getattr(rep, "sweep_figure_kinds", ())
+    if kind not in known:
+        raise UserError(f"{wf.path}: [workflow] figure = {kind!r}; known: {', '.join(known)}")
+    return rep.sweep_figures(str(kind), root, wf.name, wf.description, points, seqs, records, meta)
 
 
 # -- command line ----------------------------------------------------------------------------------------------

@@ -38,6 +38,9 @@ def _s(*fields: tuple[str, pa.DataType]) -> pa.Schema:
 
 
 _POINT_COLS = (("x", F32), ("y", F32), ("z", F32))
+#: map coordinates (voxel maps, patches, completed maps) are float64: published maps are compared on their
+#: stored float64 values (the F-score at d = one voxel decides lattice-neighbour ties on them)
+_MAP_COLS = (("x", F64), ("y", F64), ("z", F64))
 
 ARTIFACTS: dict[str, ArtifactSchema] = {
     a.name: a
@@ -96,24 +99,34 @@ ARTIFACTS: dict[str, ArtifactSchema] = {
             "the map posterior queried on a regular grid",
         ),
         ArtifactSchema(
-            "radar_map", "voxel", "radar_map.parquet", 1,
-            _s(*_POINT_COLS, ("log_odds", F32)),
+            "radar_map", "voxel", "radar_map.parquet", 2,
+            _s(*_MAP_COLS, ("log_odds", F32)),
             "occupied voxel centres of the radar OctoMap-style map (world frame)",
         ),
         ArtifactSchema(
-            "lidar_map", "voxel", "lidar_map.parquet", 1,
-            _s(*_POINT_COLS, ("log_odds", F32)),
-            "occupied voxel centres of the lidar map (world frame)",
+            "lidar_map", "voxel", "lidar_map.parquet", 2,
+            _s(*_MAP_COLS, ("log_odds", F32)),
+            "occupied voxel centres of the lidar map (world frame; for a map set: lidar_filtered)",
         ),
         ArtifactSchema(
-            "patches", "patches", "patches.parquet", 1,
-            _s(("patch", I32), ("kind", pa.string()), *_POINT_COLS,
-               ("seed_x", F32), ("seed_y", F32), ("seed_z", F32)),
+            "map_poses", "voxel", "map_poses.parquet", 1,
+            _s(*_MAP_COLS),
+            "a map set's thinned poses (the authors' patch seeds come from them), world frame",
+        ),
+        ArtifactSchema(
+            "map_trajectory", "voxel", "map_trajectory.parquet", 1,
+            _s(*_MAP_COLS),
+            "a map set's full trajectory (positions), world frame",
+        ),
+        ArtifactSchema(
+            "patches", "patches", "patches.parquet", 2,
+            _s(("patch", I32), ("kind", pa.string()), *_MAP_COLS,
+               ("seed_x", F64), ("seed_y", F64), ("seed_z", F64)),
             "FPS patches of the radar and lidar maps, world coordinates",
         ),
         ArtifactSchema(
-            "completed_map", "complete", "completed_map.parquet", 1,
-            _s(*_POINT_COLS),
+            "completed_map", "complete", "completed_map.parquet", 2,
+            _s(*_MAP_COLS),
             "the completed (lidar-like) map, world frame",
         ),
         ArtifactSchema(

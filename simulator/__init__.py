@@ -16,15 +16,32 @@ import shutil
 import time
 import uuid
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from pipeline.errors import UserError
 
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from pipeline.sequences import SequenceInfo
     from simulator.world import World
+
+
+class SimulatedSpec(Protocol):
+    """What :func:`generate_sequence` reads of a registered simulated sequence (``pipeline.sequences.SequenceInfo``
+    satisfies it; the simulator does not import the registry, so the two layers stay acyclic)."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def world(self) -> str | None: ...
+    @property
+    def duration(self) -> float: ...
+    @property
+    def seed(self) -> int: ...
+    @property
+    def format(self) -> str: ...
+
+    def simulated_path(self) -> Path: ...
 
 FORMATS = ("bag", "folder")
 MAX_DURATION_S = 3600.0
@@ -113,7 +130,7 @@ def _check(fmt: str, duration: float) -> None:
         raise UserError(f"--duration {duration:g}: must be in (0, {MAX_DURATION_S:g}] seconds")
 
 
-def generate_sequence(seq: SequenceInfo) -> Path:
+def generate_sequence(seq: SimulatedSpec) -> Path:
     """Write the registered simulated sequence ``seq`` to ``seq.simulated_path()`` unless it is there already."""
     from filelock import FileLock
     from rich.console import Console

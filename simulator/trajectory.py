@@ -12,13 +12,15 @@ the path heading minus 90 degrees and the radar (boresight along base +y) looks 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.integrate import cumulative_simpson
 from scipy.interpolate import CubicHermiteSpline, CubicSpline
 from scipy.spatial.transform import Rotation
 
-from simulator.world import TrajectorySpec
+if TYPE_CHECKING:  # type only: world.py imports this module at run time
+    from simulator.world import TrajectorySpec
 
 #: base yaw = path heading + YAW_OFFSET (the rig's forward axis is base +y)
 YAW_OFFSET = -np.pi / 2

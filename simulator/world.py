@@ -197,11 +197,13 @@ def resolve_world_path(name_or_path: str | Path) -> Path:
         return p
     cand = worlds_dir() / f"{name_or_path}.toml"
     if not cand.is_file():
-        from pipeline.config import did_you_mean
+        import difflib  # not pipeline.config's did_you_mean: the simulator imports no orchestration module
 
         names = available_worlds()
+        close = difflib.get_close_matches(str(name_or_path), names, n=1, cutoff=0.5)
+        hint = f"; did you mean '{close[0]}'?" if close else ""
         raise UserError(
-            f"unknown world '{name_or_path}'{did_you_mean(str(name_or_path), names)} "
+            f"unknown world '{name_or_path}'{hint} "
             f"(available in {worlds_dir()}: {', '.join(names) or 'none'})"
         )
     return cand

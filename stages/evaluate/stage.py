@@ -20,18 +20,22 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 from pydantic import Field
 
 from pipeline.errors import UserError
-from pipeline.stage import Stage, StageContext, StageParams, blas_threads
+from pipeline.stage import Stage, StageContext, StageParams, StageReport, blas_threads, parquet_rows
 from schemas import read_artifact, write_artifact
 from stages.evaluate import figures, tables
 from stages.evaluate.trajectory import evaluate_trajectory, path_length, quat_to_yaw
+
+if TYPE_CHECKING:
+    from pipeline.sequences import SequenceInfo
 
 F64 = npt.NDArray[np.float64]
 Section = Literal["trajectory", "mapping", "uncertainty", "rmap"]
@@ -95,6 +99,9 @@ class EvaluateParams(StageParams):
                               "spins more than it computes")
 
 
+#: sections that read the log's ground truth (the map metrics compare maps only)
+GT_SECTIONS = frozenset({"trajectory", "mapping", "uncertainty"})
+
 #: parameters of the slam stage this stage falls back to (name in slam's manifest -> default)
 SLAM_FALLBACKS = {"max_range": 5.0, "domain_padding": 5.0}
 
@@ -103,7 +110,7 @@ class EvaluateStage(Stage):
     name = "evaluate"
     description = "the papers' tables and figures"
     inputs = ("ingest", "filter", "odometry", "slam", "voxel")
-    optional_inputs = ("complete",)
+    optional_inputs = ("complete", "patches")
     Params = EvaluateParams
     version = "1"
     outputs = ("metrics.parquet", "report.md")
@@ -111,7 +118,7 @@ class EvaluateStage(Stage):
     def input_stages(self, params: StageParams) -> tuple[str, ...]:
         assert isinstance(params, EvaluateParams)
         s = set(params.sections)
-        need = ["ingest"]
+        need = ["ingest"] if s & GT_SECTIONS else []
         if "mapping" in s or "uncertainty" in s:
             need += ["filter"] if params.auc_points == "filtered" else []
         if "trajectory" in s:
@@ -121,6 +128,21 @@ class EvaluateStage(Stage):
         if "rmap" in s:
             need += ["voxel"]
         return tuple(n for n in self.inputs if n in need)
+
+    def skip_reason_for_inputs(self, seq: SequenceInfo, params: StageParams,
+                               input_dirs: Mapping[str, Path]) -> str | None:
+        assert isinstance(params, EvaluateParams)
+        if set(params.sections) & GT_SECTIONS and "ingest" in input_dirs:
+            n = parquet_rows(input_dirs["ingest"] / "groundtruth.parquet")
+            if n is not None and n < 2:
+                return (f"the log has {'no' if n == 0 else 'one'} ground-truth pose{'s' if n == 0 else ''}; "
+                        f"{', '.join(sorted(set(params.sections) & GT_SECTIONS))} need ground truth")
+        return None
+
+    def report(self) -> StageReport:
+        from stages.evaluate.report import EvaluationReport
+
+        return EvaluationReport()
 
     def run(self, ctx: StageContext) -> None:
         with blas_threads(ctx.params.blas_threads):
@@ -138,7 +160,7 @@ class Evaluation:
     def run(self, ctx: StageContext) -> None:
         p: EvaluateParams = ctx.params
         t_start = time.perf_counter()
-        gt = self._groundtruth(ctx)
+        gt = self._groundtruth(ctx) if set(p.sections) & GT_SECTIONS else {}
         if "trajectory" in p.sections:
             self._trajectories(ctx, gt)
         if "mapping" in p.sections or "uncertainty" in p.sections:
@@ -490,6 +512,9 @@ class Evaluation:
             return np.stack([t[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], 1)
 
         lidar = cloud("voxel", "lidar_map.parquet", "lidar_map")
+        if len(lidar) == 0:
+            ctx.warn("the lidar map is empty (no lidar in the log?): no map metrics")
+            return
         maps = {"radar_map": cloud("voxel", "radar_map.parquet", "radar_map")}
         d = ctx.input_dirs.get("complete")
         if d is not None and (d / "completed_map.parquet").exists():
@@ -502,11 +527,34 @@ class Evaluation:
                 self.add("rmap", name, k, v)
             self.add("rmap", name, "lr_ratio", lr_ratio(len(lidar), len(pts)))
         self.add("rmap", "lidar_map", "n_points", len(lidar))
+        self._map_set_rows(ctx)
         self.note("rmap", f"against the lidar map ({len(lidar)} voxel centres); F-score at {p.fscore_threshold:g} m; "
                   "CD-l2 and CD^x/y/z in m², the others in m (x1000 values are in metrics.parquet as *_x1000)")
         figures.plot_maps_top(ctx.output("maps_top.png"), {"lidar_map": lidar, **maps},
                               f"{ctx.seq.name}: voxel maps, top view (colour: z)", seed=p.seed)
         self.figures["rmap"] = "maps_top.png"
+
+    def _map_set_rows(self, ctx: StageContext) -> None:
+        """Map sequences: whether the ground truth was rebuilt, and the patch count, ``a`` and inference time of
+        the completion (from the voxel, patches and complete manifests) for the paper's Tables III and VI."""
+        voxel = _manifest(ctx.input_dirs["voxel"])
+        ms = voxel.get("stats", {}).get("map_set")
+        if not isinstance(ms, dict):
+            return
+        rebuilt = ms.get("lidar_filtered_source") != "map"
+        self.add("rmap", "lidar_map", "gt_rebuilt", float(rebuilt))
+        if rebuilt:
+            self.note("rmap", f"ground truth rebuilt: lidar_filtered is {ms.get('lidar_filtered_detail') or 'rebuilt'}"
+                      " (not the authors' map file)")
+        if "complete" in ctx.input_dirs:
+            stats = _manifest(ctx.input_dirs["complete"]).get("stats", {})
+            for key in ("n_patches", "seconds_per_patch", "model_seconds"):
+                if isinstance(stats.get(key), int | float):
+                    self.add("rmap", "completed_map", key, float(stats[key]))
+        if "patches" in ctx.input_dirs:
+            a = _manifest(ctx.input_dirs["patches"]).get("params", {}).get("a")
+            if isinstance(a, int | float):
+                self.add("rmap", "completed_map", "patches_a", float(a))
 
     # -- outputs --------------------------------------------------------------------------------------------------
     def _write(self, ctx: StageContext) -> None:
@@ -526,6 +574,14 @@ class Evaluation:
                 method = r["method"].replace("@", "/features_")  # rff@64 -> metrics/rff/features_64/auc
                 ctx.recording.log(f"metrics/{method}/{r['metric']}", rr.Scalars([r["value"]]), static=True)
         ctx.stats["metrics"] = len(recs)
+
+
+def _manifest(stage_dir: Path) -> dict[str, Any]:
+    try:
+        doc = json.loads((stage_dir / "manifest.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+    return doc if isinstance(doc, dict) else {}
 
 
 def render_report(seq: str, records: list[dict[str, Any]], figs: dict[str, str], notes: dict[str, list[str]]) -> str:

@@ -61,6 +61,8 @@ class IngestStage(Stage):
     name = "ingest"
     description = "read a ColoRadar-format log (bag, MCAP, extracted folder) into Parquet artifacts"
     inputs = ()
+    #: a map sequence (published maps) has no log: ingest and everything built on it is skipped there
+    needs = frozenset({"log"})
     Params = IngestParams
     version = "1"
     outputs = ("radar.parquet", "imu.parquet", "lidar.parquet", "groundtruth.parquet", "calibration.json")

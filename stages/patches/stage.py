@@ -11,15 +11,21 @@ per patch point with ``patch`` (int32), ``kind`` ('radar' / 'lidar'), world ``x,
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyarrow as pa
 from pydantic import Field
 
 from pipeline.errors import UserError
-from pipeline.stage import Stage, StageContext, StageParams
+from pipeline.stage import Stage, StageContext, StageParams, parquet_rows
 from schemas.io import read_artifact, write_artifact
 from stages.patches.fps_patches import Patches, make_patches
+
+if TYPE_CHECKING:
+    from pipeline.sequences import SequenceInfo
 
 
 class PatchesParams(StageParams):
@@ -46,6 +52,12 @@ class PatchesStage(Stage):
     version = "2"  # 2: t = floor(a * n_R / N_R) seeds (was ceil)
     outputs = ("patches.parquet", "patches.json")
 
+    def skip_reason_for_inputs(self, seq: SequenceInfo, params: StageParams,
+                               input_dirs: Mapping[str, Path]) -> str | None:
+        if "voxel" in input_dirs and parquet_rows(input_dirs["voxel"] / "lidar_map.parquet") == 0:
+            return "the lidar map is empty (no lidar or no ground truth in the log): no patch pairs"
+        return None
+
     def run(self, ctx: StageContext) -> None:
         p: PatchesParams = ctx.params
         maps = {}
@@ -71,10 +83,10 @@ class PatchesStage(Stage):
             parts.append(pa.table({
                 "patch": pa.array(patch, pa.int32()),
                 "kind": pa.array(np.full(len(patch), kind)),
-                "x": pa.array(xyz[:, 0], pa.float32()), "y": pa.array(xyz[:, 1], pa.float32()),
-                "z": pa.array(xyz[:, 2], pa.float32()),
-                "seed_x": pa.array(seeds[:, 0], pa.float32()), "seed_y": pa.array(seeds[:, 1], pa.float32()),
-                "seed_z": pa.array(seeds[:, 2], pa.float32()),
+                "x": pa.array(xyz[:, 0], pa.float64()), "y": pa.array(xyz[:, 1], pa.float64()),
+                "z": pa.array(xyz[:, 2], pa.float64()),
+                "seed_x": pa.array(seeds[:, 0], pa.float64()), "seed_y": pa.array(seeds[:, 1], pa.float64()),
+                "seed_z": pa.array(seeds[:, 2], pa.float64()),
                 "scale": pa.array(res.scale[patch], pa.float32()),
                 "rank": pa.array(np.tile(np.arange(k, dtype=np.int32), t), pa.int32()),
                 "padded": pa.array(pad.reshape(-1), pa.bool_()),

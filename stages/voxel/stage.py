@@ -23,13 +23,26 @@ dense, e.g. a full OS1-64).
 Writes the occupied voxel centres with their log-odds (``radar_map.parquet``, ``lidar_map.parquet``),
 optionally OctoMap ``.bt`` files (when the ``octomap`` binding is importable), and logs both maps to
 Rerun (``world/voxel/radar``, ``world/voxel/lidar``, static, coloured by height).
+
+Map sequences (``rmap_<scene>``, ``maps = "import"``): the published maps *are* this stage's outputs. The
+scene's radar map and ``lidar_filtered`` map (the RMap ground truth) are read from the map set
+(``sources.mapset``, either layout) and written unchanged in float64 as ``radar_map.parquet`` and
+``lidar_map.parquet`` (``log_odds`` NaN: not published), with ``map_poses.parquet`` and
+``map_trajectory.parquet``; the manifest's ``stats.map_set`` records the scene, split, environment and
+where ``lidar_filtered`` came from (``map`` or ``rebuilt``). Nothing is written when any file is bad.
+
+A log without ground truth (radar + IMU only) cannot give the paper's maps: with ``trajectory =
+"groundtruth"`` the stage is skipped with that reason (``--set voxel.trajectory=odometry`` builds the radar
+map along the odometry instead).
 """
 
 from __future__ import annotations
 
 import json
 import time
-from typing import Any, Literal
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -37,13 +50,17 @@ from pydantic import Field
 
 from pipeline.errors import UserError
 from pipeline.recording import scan_lengths
-from pipeline.stage import Stage, StageContext, StageParams
+from pipeline.stage import Stage, StageContext, StageParams, parquet_rows
 from schemas.io import read_artifact, write_artifact
+from sources import mapset
 from stages.voxel import octomap_io
 from stages.voxel.poses import horizontal_fov_mask, interpolate_se2, interpolate_se3
 from stages.voxel.radar_model import fan_directions, radar_scan_keys
 from stages.voxel.raycast import scan_update_keys
 from stages.voxel.voxel_map import SensorModel, VoxelMap
+
+if TYPE_CHECKING:
+    from pipeline.sequences import SequenceInfo
 
 F64 = npt.NDArray[np.float64]
 
@@ -51,6 +68,10 @@ F64 = npt.NDArray[np.float64]
 class VoxelParams(StageParams):
     """Parameters of the `voxel` stage (defaults: RMap Sec. III-A and the ColoRadar OctoMap fork)."""
 
+    maps: Literal["build", "import"] = Field(
+        "build", description="build the maps from the ingested log, or import a published map set (the default "
+        "of map sequences, rmap_<scene>)"
+    )
     trajectory: Literal["groundtruth", "odometry", "slam"] = Field(
         "groundtruth", description="trajectory the radar map is built along (the lidar map always uses ground truth)"
     )
@@ -96,11 +117,13 @@ class VoxelStage(Stage):
     description = "radar and lidar OctoMap-style voxel maps (RMap Sec. III-A)"
     inputs = ("ingest",)
     Params = VoxelParams
-    version = "1"
+    version = "2"
     outputs = ("radar_map.parquet", "lidar_map.parquet")
 
     def input_stages(self, params: StageParams) -> tuple[str, ...]:
         assert isinstance(params, VoxelParams)
+        if params.maps == "import":
+            return ()
         extra: list[str] = []
         if params.trajectory in ("odometry", "slam"):
             extra.append(params.trajectory)
@@ -108,8 +131,34 @@ class VoxelStage(Stage):
             extra.append("filter")
         return (*self.inputs, *extra)
 
+    def skip_reason(self, seq: SequenceInfo, params: StageParams) -> str | None:
+        assert isinstance(params, VoxelParams)
+        if params.maps == "import" and "maps" not in seq.provides:
+            return f"voxel.maps=import needs a published map set; '{seq.name}' is a {seq.kind_label}"
+        return super().skip_reason(seq, params)
+
+    def skip_reason_for_inputs(self, seq: SequenceInfo, params: StageParams,
+                               input_dirs: Mapping[str, Path]) -> str | None:
+        assert isinstance(params, VoxelParams)
+        if params.maps == "build" and params.trajectory == "groundtruth" and "ingest" in input_dirs:
+            if parquet_rows(input_dirs["ingest"] / "groundtruth.parquet") == 0:
+                return ("the log has no ground truth, so no paper maps (--set voxel.trajectory=odometry builds the "
+                        "radar map along the odometry)")
+        return None
+
+    def key_material(self, seq: SequenceInfo, params: StageParams) -> dict[str, Any]:
+        assert isinstance(params, VoxelParams)
+        if params.maps != "import" or seq.kind != "rmap":
+            return {}
+        root = seq.map_root_or_none()
+        scene = seq.scene or seq.name
+        return {"map_set": mapset.fingerprint(root, scene) if root is not None else {"missing": scene}}
+
     def run(self, ctx: StageContext) -> None:
         p: VoxelParams = ctx.params
+        if p.maps == "import":
+            self._import(ctx, p)
+            return
         if p.clamp_min >= p.clamp_max:
             raise UserError(f"voxel.clamp_min ({p.clamp_min}) must be below voxel.clamp_max ({p.clamp_max})")
         calib = _read_calibration(ctx)
@@ -154,6 +203,38 @@ class VoxelStage(Stage):
                              "no .bt written")
         n_r, n_l = ctx.stats["radar_voxels"]["occupied"], ctx.stats["lidar_voxels"]["occupied"]
         ctx.stats["lr_ratio"] = n_l / n_r if n_r else float("nan")
+
+    # -- published map sets ----------------------------------------------------------------------------
+    def _import(self, ctx: StageContext, p: VoxelParams) -> None:
+        """Write a map set's radar and lidar_filtered maps (float64 as stored) and trajectories."""
+        seq = ctx.seq
+        scene = seq.scene or seq.name
+        ms = mapset.read_map_set(seq.map_root(), scene)
+        meta = {"resolution": str(p.resolution), "source": f"map set {ms.layout} {ms.root}", "scene": scene,
+                "log_odds": "not published (imported map)"}
+        for kind, pts in (("radar", ms.radar), ("lidar", ms.lidar_filtered)):
+            extra = {"lidar_filtered_source": ms.lidar_filtered_source} if kind == "lidar" else {}
+            write_artifact({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2],
+                            "log_odds": np.full(len(pts), np.nan, np.float32)},
+                           ctx.output(f"{kind}_map.parquet"), f"{kind}_map", metadata={**meta, **extra})
+            ctx.recording.static_points(f"world/voxel/{kind}", pts, colors=height_colors(pts[:, 2]),
+                                        radii=p.resolution / 2)
+        for name, pts in (("map_poses", ms.poses), ("map_trajectory", ms.trajectory)):
+            write_artifact({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, ctx.output(f"{name}.parquet"), name,
+                           metadata={"scene": scene})
+        ctx.recording.static_points("world/groundtruth", ms.trajectory, colors=[255, 255, 255], radii=0.03)
+        n_r, n_l = len(ms.radar), len(ms.lidar_filtered)
+        ctx.stats["map_set"] = {
+            "scene": scene, "layout": ms.layout, "root": str(ms.root),
+            "split": seq.split or ms.split, "environment": seq.environment or ms.environment,
+            "lidar_filtered_source": ms.lidar_filtered_source, "lidar_filtered_detail": ms.source_detail,
+            "has_lidar": ms.lidar is not None, "files": {k: str(v) for k, v in ms.files.items()},
+        }
+        ctx.stats["radar_voxels"] = {"occupied": n_r}
+        ctx.stats["lidar_voxels"] = {"occupied": n_l}
+        ctx.stats["lr_ratio"] = n_l / n_r
+        if ms.lidar_filtered_source != "map":
+            ctx.warn(f"scene '{scene}': lidar_filtered is rebuilt ({ms.source_detail}), not the authors' map file")
 
     # -- trajectories --------------------------------------------------------------------------------
     def _se2_poses(self, ctx: StageContext, p: VoxelParams, gt_xyz: F64) -> Any:
