@@ -18,6 +18,7 @@ from typer.exceptions import TyperException
 from pipeline.config import describe_params, load_workflow, parse_set
 from pipeline.errors import UserError
 from pipeline.paths import default_runs_dir
+from pipeline.profile_cli import app as profile_app
 from pipeline.registry import load_stages
 from pipeline.runner import Runner, StageOutcome, StagesFailed
 from pipeline.sequences import SequenceInfo, expand_sequences, load_registry, source_sequence
@@ -354,6 +355,7 @@ def train(
 
 
 app.command("sweep")(sweep_command)
+app.add_typer(profile_app, name="profile")
 
 
 def main() -> None:
