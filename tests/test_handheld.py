@@ -161,10 +161,18 @@ def test_record_time_source_uses_the_record_time_everywhere(bag: Path, tmp_path:
 
 
 # -- the defaults close the loop ----------------------------------------------------------------------------------
-def test_defaults_close_the_handheld_loop_with_the_mounting_from_a_profile_file(bag: Path, tmp_path: Path,
+@pytest.fixture(scope="module")
+def walked(bag: Path, rig: Any, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """ingest, filter and odometry on the defaults, the mounting in a profile file: (runs dir, profile)."""
+    root = tmp_path_factory.mktemp("walked")
+    profile = _profile(root / "my_rig.toml", rig)
+    _run(bag, root / "runs", ["odometry"], dataset=str(profile))
+    return root / "runs", profile
+
+
+def test_defaults_close_the_handheld_loop_with_the_mounting_from_a_profile_file(bag: Path, walked: tuple[Path, Path],
                                                                                  rig: Any) -> None:
-    profile = _profile(tmp_path / "my_rig.toml", rig)
-    out = _run(bag, tmp_path / "runs", ["odometry"], dataset=str(profile))
+    out = walked[0] / "walk"
     ingest = _stats(out / "ingest")
     assert not any("no tf" in w for w in ingest["warnings"])
     calib = json.loads((out / "ingest" / "calibration.json").read_text())
@@ -182,6 +190,24 @@ def test_defaults_close_the_handheld_loop_with_the_mounting_from_a_profile_file(
     # the estimated gyro bias at the standstill is the simulator's true bias there
     true_bg = tr[["bgx", "bgy", "bgz"]].to_numpy()[:400].mean(axis=0)
     np.testing.assert_allclose(ekf["standstill"]["gyro_bias"], true_bg, atol=1e-3)
+
+
+def test_an_imu_noise_set_too_low_is_warned_about(bag: Path, walked: tuple[Path, Path], tmp_path: Path) -> None:
+    import shutil
+
+    runs = tmp_path / "runs"
+    shutil.copytree(walked[0], runs)  # ingest and filter are cached there
+    seq = SequenceInfo(name="walk", kind="source", dataset=str(walked[1]), source=bag)
+    over = {"odometry": {"accel_noise_density": 0.002, "gate_probability": 0.99}}
+    run_unwrapped(Runner(seq, runs, load_stages(), Workflow("t", ["ingest", "filter", "odometry"]), over),
+                  ["odometry"])
+    st = _stats(runs / "walk" / "odometry")
+    ekf = st["ekf"]
+    share = ekf["velocity_rejected"] / (ekf["velocity_rejected"] + ekf["velocity_updates"])
+    assert share > 0.1
+    assert any(f"rejected {ekf['velocity_rejected']} of" in w and "accel_noise_density=0.002" in w
+               for w in st["warnings"])
+    assert ekf["recoveries"] >= 1 and any("recovered" in w for w in st["warnings"])
 
 
 def test_the_registered_handheld_sequence_uses_a_profile_file() -> None:
