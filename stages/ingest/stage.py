@@ -3,7 +3,15 @@
 Streams the log once: radar and lidar clouds and IMU samples go to Parquet in row-group batches (memory
 stays bounded on long bags), ground truth and an optional odometry topic are buffered (small) and
 written at the end together with ``calibration.json`` (base <- radar / lidar / imu, 4x4). Topic names,
-field names and frames come from the dataset profile ``data/datasets/<dataset>.toml``.
+field names and frames come from the dataset profile ``data/datasets/<dataset>.toml`` (or a profile file
+given as ``dataset = "path.toml"``).
+
+Before streaming, the clock of every stream is chosen from its first messages (``time_source``,
+:mod:`stages.ingest.clock`): zero, constant or foreign header stamps are lined up and warned about, and
+radar and IMU spans that still do not overlap are a user error. Empty radar scans and stretches without
+radar points longer than ``radar_gap_warn_s`` are counted in the manifest and warned about. Extrinsics
+come from ``--set ingest.<sensor>_extrinsic``, the folder's calib files, tf, the profile's
+``[extrinsics.<sensor>]`` (no warning) or identity (warned, naming the frame or its absence).
 """
 
 from __future__ import annotations
@@ -70,11 +78,10 @@ class IngestParams(StageParams):
     radar_frame: str = Field("", description="override the radar frame name (when the messages' frame_id is empty)")
     imu_frame: str = Field("", description="override the IMU frame name")
     lidar_frame: str = Field("", description="override the lidar frame name")
-    radar_extrinsic: list[float] = Field(default_factory=list, description="base <- radar as [tx, ty, tz, qx, qy, qz, "
-                                                                            "qw] (overrides tf and profile)")
-    imu_extrinsic: list[float] = Field(default_factory=list, description="base <- imu as [tx, ty, tz, qx, qy, qz, qw]")
-    lidar_extrinsic: list[float] = Field(default_factory=list, description="base <- lidar as [tx, ty, tz, qx, qy, "
-                                                                            "qz, qw]")
+    radar_extrinsic: list[float] = Field([], description="base <- radar: a list tx ty tz (m) qx qy qz qw; wins over "
+                                                         "tf and the profile")
+    imu_extrinsic: list[float] = Field([], description="base <- imu: a list tx ty tz (m) qx qy qz qw")
+    lidar_extrinsic: list[float] = Field([], description="base <- lidar: a list tx ty tz (m) qx qy qz qw")
 
     @field_validator("radar_extrinsic", "imu_extrinsic", "lidar_extrinsic")
     @classmethod
