@@ -185,7 +185,9 @@ def test_defaults_close_the_handheld_loop_with_the_mounting_from_a_profile_file(
     length = float(np.hypot(np.diff(tr["x"]), np.diff(tr["y"])).sum())
     closure = float(np.hypot(odo["x"].iloc[-1] - odo["x"].iloc[0], odo["y"].iloc[-1] - odo["y"].iloc[0]))
     assert closure < 0.02 * length, f"loop closed within {closure:.3f} m of {length:.1f} m"
-    ekf = _stats(out / "odometry")["ekf"]
+    odo_stats = _stats(out / "odometry")
+    assert odo_stats.get("warnings", []) == []  # no rejections to speak of, no recovery, no ground truth missed
+    ekf = odo_stats["ekf"]
     assert ekf["standstill"] is not None and ekf["standstill"]["seconds"] >= 2.0
     # the estimated gyro bias at the standstill is the simulator's true bias there
     true_bg = tr[["bgx", "bgy", "bgz"]].to_numpy()[:400].mean(axis=0)

@@ -115,8 +115,10 @@ class OdometryStage(Stage):
                 anchored = "groundtruth"
                 ctx.stats["anchor_scan"] = int(scans[at])
             else:
-                if p.anchor == "groundtruth":
+                if p.anchor == "groundtruth" and len(gt_t):
                     ctx.warn("no ground truth during the odometry: anchored at the origin instead")
+                elif p.anchor == "groundtruth":  # a radar + IMU log: nothing to anchor to, nothing wrong
+                    ctx.console.print("[dim]odometry: the log has no ground truth; anchored at the origin[/]")
                 x, y, yaw = se2_compose_anchor(x, y, yaw, first, 0.0, 0.0, 0.0)
         write_artifact({"scan": scans.astype(np.int32), "t_ns": scan_t, "x": x, "y": y, "yaw": yaw,
                         "valid": valid}, ctx.output("odometry.parquet"), "odometry",
