@@ -19,6 +19,7 @@ from typer.exceptions import TyperException
 from pipeline.config import describe_params, load_workflow, parse_set
 from pipeline.errors import UserError
 from pipeline.paths import default_runs_dir
+from pipeline.profile_cli import app as profile_app
 from pipeline.registry import STAGE_NAMES, load_stages
 from pipeline.runner import Runner, StageOutcome, StagesFailed
 from pipeline.sequences import SequenceInfo, expand_sequences, load_registry, source_sequence
@@ -385,6 +386,7 @@ def train(
 
 
 app.command("sweep")(sweep_command)
+app.add_typer(profile_app, name="profile")
 
 
 INTERRUPTED = 130  #: exit code after Ctrl-C (128 + SIGINT), as shells report it

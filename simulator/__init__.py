@@ -81,7 +81,13 @@ def write_run(world: World, out: Path, duration: float, seed: int, fmt: str, con
 
     sim = Simulation(world, duration, seed, workers=workers)
     writer: Any
-    if fmt == "bag":
+    if sim.handheld is not None:
+        if fmt != "bag":
+            raise UserError(f"{world.path}: the handheld rig writes ROS1 bags only; use --format bag")
+        from simulator.handheld_bag import HandheldBagWriter
+
+        writer = HandheldBagWriter(out, sim)
+    elif fmt == "bag":
         from simulator.bagwriter import BagWriter
 
         writer = BagWriter(out, seed, sim.imu_p)

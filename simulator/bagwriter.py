@@ -38,7 +38,7 @@ class BagWriter:
     """Streams simulation windows into a ROS1 bag."""
 
     # (topic, type, callerid, latching); written in this order when record times tie
-    CONNECTIONS = (
+    CONNECTIONS: tuple[tuple[str, str, str, int], ...] = (
         (rig.TF_STATIC_TOPIC, "tf2_msgs/msg/TFMessage", "/os1_node", 1),
         (rig.TF_TOPIC, "tf2_msgs/msg/TFMessage", "/static_tf_publishers", 0),
         (rig.IMU_TOPIC, "sensor_msgs/msg/Imu", "/gx5/microstrain_3dm_gx5_node", 0),

@@ -30,8 +30,14 @@ def initial_bias(p: ImuParams, rng: np.random.Generator) -> np.ndarray:
 
 
 def simulate_block(state: TrajectoryState, mount: Extrinsic, p: ImuParams, rate: float, bias0: np.ndarray,
-                   rng: np.random.Generator) -> tuple[ImuBlock, np.ndarray]:
-    """Measurements at ``state.t``; returns the block and the bias after its last sample."""
+                   rng: np.random.Generator, extra: tuple[np.ndarray, np.ndarray] | None = None,
+                   errors: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[ImuBlock, np.ndarray]:
+    """Measurements at ``state.t``; returns the block and the bias after its last sample.
+
+    ``extra``: (specific force, angular rate) added in the IMU frame (e.g. heel-strike vibration);
+    ``errors``: the gyro and accelerometer matrices of :func:`simulator.sensor_errors.error_matrices`.
+    Both are applied to the true signal, before bias and noise.
+    """
     n = len(state.t)
     dt = 1.0 / rate
     steps = rng.normal(0.0, 1.0, (n, 6)) * np.sqrt(dt) * np.array([p.gyro_bias_walk] * 3 + [p.accel_bias_walk] * 3)
@@ -39,8 +45,14 @@ def simulate_block(state: TrajectoryState, mount: Extrinsic, p: ImuParams, rate:
     r_wi = state.rotation * mount.rotation
     _, _, acc = state.sensor(mount.t)
     g = np.array([0.0, 0.0, -p.gravity])
-    gyro = r_wi.inv().apply(state.omega_world) + bias[:, :3]
-    accel = r_wi.inv().apply(acc - g) + bias[:, 3:]
+    gyro = r_wi.inv().apply(state.omega_world)
+    accel = r_wi.inv().apply(acc - g)
+    if extra is not None:
+        accel, gyro = accel + extra[0], gyro + extra[1]
+    if errors is not None:
+        gyro, accel = gyro @ errors[0].T, accel @ errors[1].T
+    gyro += bias[:, :3]
+    accel += bias[:, 3:]
     gyro += rng.normal(0.0, p.gyro_noise_density * np.sqrt(rate), (n, 3))
     accel += rng.normal(0.0, p.accel_noise_density * np.sqrt(rate), (n, 3))
     last = bias[-1] if n else bias0

@@ -44,7 +44,7 @@ class SidecarWriter:
             self.label_counts += np.bincount(scan.labels, minlength=3)[:3]
             self.labels.append({
                 "scan": np.full(n, scan.index, np.int32),
-                "t_ns": np.full(n, epoch + round(scan.t * NS), np.int64),
+                "t_ns": np.full(n, epoch + self.sim.radar_stamp_ns(scan.index), np.int64),
                 "point": np.arange(n, dtype=np.int32),
                 "label": scan.labels.astype(np.int8),
                 "x_true": scan.xyz_true[:, 0], "y_true": scan.xyz_true[:, 1], "z_true": scan.xyz_true[:, 2],
@@ -110,5 +110,11 @@ class SidecarWriter:
             "stats": {**self.stats(), **extra},
             "scatterers": len(sim.scatterers),
         }
+        if sim.handheld is not None:
+            mount = sim.radar_mount
+            meta["rates_hz"] = {"radar": sim.radar_rate, "imu": sim.imu_rate}
+            meta["rig"] = {"handheld": sim.handheld.model_dump(),
+                           f"{mount.parent}<-{mount.child}": {"translation": list(mount.translation),
+                                                              "quaternion": list(mount.quaternion)}}
         (self.folder / "meta.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
         return meta

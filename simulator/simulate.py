@@ -9,21 +9,25 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from pipeline.errors import UserError
 from simulator import imu as imu_model
 from simulator import lidar as lidar_model
 from simulator import radar as radar_model
 from simulator import rig
+from simulator.handheld import HandheldRig, WalkingTrajectory, heel_strike
 from simulator.params import ImuParams, LidarParams, RadarParams, make_params
 from simulator.scatterers import Scatterers, build_scatterers
+from simulator.sensor_errors import SensorErrors, error_matrices
 from simulator.trajectory import Trajectory, TrajectoryState
 from simulator.world import World
 
 STREAM_TIMING, STREAM_RADAR, STREAM_LIDAR, STREAM_IMU, STREAM_IMU_BIAS, STREAM_LATENCY = 1, 2, 3, 4, 5, 6
 STREAM_SCATTERERS = 7
+STREAM_ERRORS, STREAM_VIBRATION, STREAM_RECORD_LATENCY = 8, 9, 10
 
 NS = 1_000_000_000
 
@@ -73,21 +77,40 @@ class Simulation:
         self.radar_p: RadarParams = make_params(RadarParams, world.spec.radar, f"{where} [radar]")
         self.lidar_p: LidarParams = make_params(LidarParams, world.spec.lidar, f"{where} [lidar]")
         self.imu_p: ImuParams = make_params(ImuParams, world.spec.imu, f"{where} [imu]")
-        self.traj = Trajectory(world.spec.trajectory, self.duration, floor=world.spec.floor)
+        self.errors: SensorErrors = make_params(SensorErrors, world.spec.errors, f"{where} [errors]")
+        #: a handheld rig (simulator.handheld) instead of the ColoRadar one
+        self.handheld: HandheldRig | None = (make_params(HandheldRig, world.spec.rig, f"{where} [rig]")
+                                             if world.spec.rig else None)
+        self.traj: Trajectory
+        if self.handheld is not None:
+            try:
+                self.traj = WalkingTrajectory(world.spec.trajectory, self.duration, world.spec.floor, self.handheld)
+            except ValueError as exc:
+                raise UserError(f"{where}: {exc}") from None
+            self.radar_mount = self.handheld.radar_mount()
+            self.imu_mount = self.handheld.imu_mount()
+            self.radar_rate, self.imu_rate = self.handheld.radar_rate_hz, self.handheld.imu_rate_hz
+            self.radar_yaw = float(np.radians(self.handheld.radar_yaw_deg))
+        else:
+            self.traj = Trajectory(world.spec.trajectory, self.duration, floor=world.spec.floor)
+            self.radar_mount, self.imu_mount = rig.BASE_TO_RADAR, rig.BASE_TO_IMU
+            self.radar_rate, self.imu_rate = rig.RADAR_RATE_HZ, rig.IMU_RATE_HZ
+            self.radar_yaw = rig.yaw_of(rig.BASE_TO_RADAR)
         self.scatterers: Scatterers = build_scatterers(world.spec, self.radar_p,
                                                        np.random.default_rng([self.seed, STREAM_SCATTERERS]))
-        self.radar_yaw = rig.yaw_of(rig.BASE_TO_RADAR)
         self.lidar_yaw = rig.yaw_of(rig.BASE_TO_LIDAR)
+        self.error_mats = (error_matrices(self.errors, np.random.default_rng([self.seed, STREAM_ERRORS]))
+                           if self.errors.active else None)
 
         rng = np.random.default_rng([self.seed, STREAM_TIMING])
         d = self.duration
         n_max = int(d * 300) + 10
         rj = np.clip(rng.normal(0, self.radar_p.time_jitter, n_max), -0.01, 0.01)
         gj = np.clip(rng.normal(0, 0.005, n_max), -0.02, 0.02)
-        self.radar_ns = _ns(_grid(0.05, 1 / rig.RADAR_RATE_HZ, d, rj))
+        self.radar_ns = _ns(_grid(0.05, 1 / self.radar_rate, d, rj))
         sweep = 1 / rig.LIDAR_RATE_HZ
         self.lidar_ns = _ns(_grid(0.0, sweep, d - sweep + 1e-9))
-        self.imu_ns = _ns(_grid(0.002, 1 / rig.IMU_RATE_HZ, d))
+        self.imu_ns = _ns(_grid(0.002, 1 / self.imu_rate, d))
         gt = _grid(0.08, 1 / rig.GT_RATE_HZ, d, gj)
         drop = rng.random(len(gt)) < 0.03
         drop[:1] = False
@@ -96,6 +119,24 @@ class Simulation:
         self.sweep = sweep
         self.n_windows = max(1, int(np.ceil(d / self.window - 1e-9)))
         self._bias0 = imu_model.initial_bias(self.imu_p, np.random.default_rng([self.seed, STREAM_IMU_BIAS]))
+        self.radar_record_ns = self.radar_ns.copy()
+        self.imu_record_ns = self.imu_ns.copy()
+        if self.handheld is not None:
+            h = self.handheld
+            lat = np.random.default_rng([self.seed, STREAM_RECORD_LATENCY])
+            r_lat = lat.uniform(h.radar_latency_s[0], h.radar_latency_s[1], size=len(self.radar_ns))
+            i_lat = lat.uniform(h.imu_latency_s[0], h.imu_latency_s[1], size=len(self.imu_ns))
+            self.radar_record_ns = self.radar_ns + _ns(r_lat)
+            self.imu_record_ns = self.imu_ns + _ns(i_lat)
+            assert isinstance(self.traj, WalkingTrajectory)
+            self.steps = self.traj.step_times()
+
+    def radar_stamp_ns(self, index: int) -> int:
+        """Time of radar scan ``index`` (ns from the start) as ingest will see it: the record time when the
+        header stamps are zero (handheld rig), the header stamp otherwise."""
+        if self.handheld is not None and self.handheld.radar_zero_stamps:
+            return int(self.radar_record_ns[index])
+        return int(self.radar_ns[index])
 
     # -------------------------------------------------------------------------------------------------------
     def _range(self, stamps: np.ndarray, k: int) -> np.ndarray:
@@ -108,16 +149,35 @@ class Simulation:
             return []
         t = self.radar_ns[idx] / NS
         st = self.traj.state(t)
-        pos, vel, _ = st.sensor(rig.BASE_TO_RADAR.t)
-        return [
+        pos, vel, _ = st.sensor(self.radar_mount.t)
+        scans = [
             radar_model.simulate_scan(self.world.scene, self.scatterers, self.radar_p, int(i), float(t[j]), pos[j],
                                       float(st.yaw[j] + self.radar_yaw), vel[j],
                                       np.random.default_rng([self.seed, STREAM_RADAR, int(i)]))
             for j, i in enumerate(idx)
         ]
+        if self.handheld is not None:
+            scans = [self._handheld_scan(s) for s in scans]
+        return scans
+
+    def _handheld_scan(self, scan: radar_model.RadarScan) -> radar_model.RadarScan:
+        """The handheld radar: points in its rotated (rolled) mount frame; empty during the dropout."""
+        h = self.handheld
+        assert h is not None
+        if h.dropout_s > 0 and h.dropout_start_s <= scan.t < h.dropout_start_s + h.dropout_s:
+            return replace(scan, points=scan.points[:0], labels=scan.labels[:0], xyz_true=scan.xyz_true[:0],
+                           cell_scatterers=scan.cell_scatterers[:0])
+        if h.radar_roll_deg == 180.0:  # published frame = level model frame rolled about x by 180 deg
+            pts = scan.points.copy()
+            pts["y"], pts["z"] = -pts["y"], -pts["z"]
+            xyz = scan.xyz_true * np.array([1, -1, -1], np.float32)
+            scan = replace(scan, points=pts, xyz_true=xyz)
+        return scan
 
     def lidar_scans(self, k: int) -> list[lidar_model.LidarScan]:
-        out = []
+        out: list[lidar_model.LidarScan] = []
+        if self.handheld is not None:  # the handheld rig has no lidar
+            return out
         w = self.lidar_p.columns
         for i in self._range(self.lidar_ns, k):
             t0 = self.lidar_ns[i] / NS
@@ -144,8 +204,13 @@ class Simulation:
                 radar, lidar = futures.pop(k).result()
                 ii = self._range(self.imu_ns, k)
                 truth = self.traj.state(self.imu_ns[ii] / NS)
-                block, bias = imu_model.simulate_block(truth, rig.BASE_TO_IMU, self.imu_p, rig.IMU_RATE_HZ, bias,
-                                                       np.random.default_rng([self.seed, STREAM_IMU, k]))
+                extra = None
+                if self.handheld is not None:
+                    extra = heel_strike(truth.t, self.steps, self.handheld,
+                                        np.random.default_rng([self.seed, STREAM_VIBRATION, k]))
+                block, bias = imu_model.simulate_block(truth, self.imu_mount, self.imu_p, self.imu_rate, bias,
+                                                       np.random.default_rng([self.seed, STREAM_IMU, k]),
+                                                       extra=extra, errors=self.error_mats)
                 gi = self._range(self.gt_ns, k)
                 gst = self.traj.state(self.gt_ns[gi] / NS)
                 gt = GtBlock(t=gst.t, position=gst.position, quaternion=gst.quaternion)

@@ -121,6 +121,9 @@ class WorldSpec(_Strict):
     radar: dict[str, Any] = Field(default_factory=dict, description="overrides of simulator.params.RadarParams")
     lidar: dict[str, Any] = Field(default_factory=dict, description="overrides of simulator.params.LidarParams")
     imu: dict[str, Any] = Field(default_factory=dict, description="overrides of simulator.params.ImuParams")
+    rig: dict[str, Any] = Field(default_factory=dict, description="a non-default rig: simulator.handheld.HandheldRig "
+                                                                  "(empty: the ColoRadar rig of simulator.rig)")
+    errors: dict[str, Any] = Field(default_factory=dict, description="simulator.sensor_errors.SensorErrors")
 
     @model_validator(mode="after")
     def _check(self) -> WorldSpec:

@@ -45,6 +45,8 @@ class Extrinsic(_Model):
 
 
 class Extrinsics(_Model):
+    fallback: bool = Field(False, description="values are dataset defaults for logs missing their tf "
+                                              "(warned when used)")
     radar: Extrinsic = Field(default_factory=Extrinsic, description="base <- radar")
     lidar: Extrinsic = Field(default_factory=Extrinsic, description="base <- lidar")
     imu: Extrinsic = Field(default_factory=Extrinsic, description="base <- imu")

@@ -53,6 +53,9 @@ class Message:
     child_frame: str = ""
     #: True when the header stamp was zero and the log's record time was used instead
     record_time: bool = False
+    #: the header stamp and the log's record time, ns (the folder form has header stamps only: both equal)
+    header_ns: int = 0
+    record_ns: int = 0
 
 
 @dataclass
@@ -76,6 +79,11 @@ class Source:
 
     def messages(self) -> Iterator[Message]:
         raise NotImplementedError
+
+    def clock_samples(self, n: int) -> dict[str, tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]]:
+        """(header stamps, record times) of the first ``n`` messages of each streamed sensor; the folder
+        form has one clock only (empty: nothing to line up)."""
+        return {}
 
     def describe(self) -> str:
         return f"{self.form} {self.path}"
@@ -228,6 +236,26 @@ class BagSource(Source):
         self.tf_topics = [t for t in prof.topics.tf if t in self.topics and self.topics[t].msgtype == TF]
 
     # -- iteration ---------------------------------------------------------------------------------------------
+    def clock_samples(self, n: int) -> dict[str, tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]]:
+        out: dict[str, tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]] = {}
+        errors = _read_errors()
+        for stream, topic in self.streams.items():
+            conns = [c for c in self.reader.connections if c.topic == topic]
+            head: list[int] = []
+            rec: list[int] = []
+            try:
+                for conn, rec_ns, raw in self.reader.messages(connections=conns):
+                    msg: Any = self.reader.deserialize(raw, conn.msgtype)
+                    head.append(_stamp_ns(msg.header))
+                    rec.append(int(rec_ns))
+                    if len(head) >= n:
+                        break
+            except errors as exc:
+                raise UserError(f"{self.path}: corrupt or truncated log while reading '{topic}' ({_why(exc)}); "
+                                f"re-download or re-index the file") from exc
+            out[stream] = (np.asarray(head, np.int64), np.asarray(rec, np.int64))
+        return out
+
     def messages(self) -> Iterator[Message]:
         by_topic: dict[str, list[str]] = {}
         for stream, topic in self.streams.items():
@@ -259,7 +287,8 @@ class BagSource(Source):
                 for stream in by_topic[conn.topic]:
                     stamp = _stamp_ns(msg.header)
                     out = Message(stream, stamp if stamp else int(rec_ns), counters[stream],
-                                  frame=msg.header.frame_id, record_time=stamp == 0)
+                                  frame=msg.header.frame_id, record_time=stamp == 0, header_ns=stamp,
+                                  record_ns=int(rec_ns))
                     counters[stream] += 1
                     if stream in POINT_STREAMS:
                         out.columns = self._decode_cloud(stream, msg, layouts)
@@ -353,7 +382,7 @@ def read_transform_file(path: Path) -> npt.NDArray[np.float64]:
 
 def _rows(stream: str, times: npt.NDArray[np.int64], table: npt.NDArray[np.float64]) -> Iterator[Message]:
     for i, t in enumerate(times):
-        yield Message(stream, int(t), i, values=table[i])
+        yield Message(stream, int(t), i, values=table[i], header_ns=int(t), record_ns=int(t))
 
 
 class FolderSource(Source):
@@ -422,7 +451,8 @@ class FolderSource(Source):
                                 f"(truncated file?)")
             self.bytes_read += len(raw)
             arr = np.frombuffer(raw, dtype="<f4").reshape(-1, len(cols))
-            yield Message(stream, int(t), i, columns={c: np.ascontiguousarray(arr[:, cols.index(c)]) for c in wanted})
+            yield Message(stream, int(t), i, columns={c: np.ascontiguousarray(arr[:, cols.index(c)]) for c in wanted},
+                          header_ns=int(t), record_ns=int(t))
 
     def messages(self) -> Iterator[Message]:
         import heapq

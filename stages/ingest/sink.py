@@ -138,6 +138,8 @@ class LabelSidecar:
     def labels_for(self, index: int, t_ns: int, n_points: int) -> npt.NDArray[np.int8]:
         """Labels of the ``n_points`` points of scan message ``index`` stamped ``t_ns`` (-1 where unknown)."""
         out = np.full(n_points, -1, dtype=np.int8)
+        if n_points == 0:  # an empty scan has no label rows to find
+            return out
         k = self._scan_slot(index, t_ns)
         if k is None:
             self.unmatched_scans += 1
@@ -160,6 +162,9 @@ class StreamStats:
     backwards: int = 0
     out_of_order_dropped: int = 0
     record_time_used: int = 0
+    #: point-cloud messages published with no points (width 0), and scans left without points after dropping
+    empty_messages: int = 0
+    scans_without_points: int = 0
     first_t_ns: int | None = None
     last_t_ns: int | None = None
 

@@ -3,7 +3,15 @@
 Streams the log once: radar and lidar clouds and IMU samples go to Parquet in row-group batches (memory
 stays bounded on long bags), ground truth and an optional odometry topic are buffered (small) and
 written at the end together with ``calibration.json`` (base <- radar / lidar / imu, 4x4). Topic names,
-field names and frames come from the dataset profile ``data/datasets/<dataset>.toml``.
+field names and frames come from the dataset profile ``data/datasets/<dataset>.toml`` (or a profile file
+given as ``dataset = "path.toml"``).
+
+Before streaming, the clock of every stream is chosen from its first messages (``time_source``,
+:mod:`stages.ingest.clock`): zero, constant or foreign header stamps are lined up and warned about, and
+radar and IMU spans that still do not overlap are a user error. Empty radar scans and stretches without
+radar points longer than ``radar_gap_warn_s`` are counted in the manifest and warned about. Extrinsics
+come from ``--set ingest.<sensor>_extrinsic``, the folder's calib files, tf, the profile's
+``[extrinsics.<sensor>]`` (no warning) or identity (warned, naming the frame or its absence).
 """
 
 from __future__ import annotations
@@ -17,13 +25,21 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from pipeline.errors import UserError
 from pipeline.sequences import SequenceInfo, source_fingerprint
 from pipeline.stage import Stage, StageContext, StageParams
 from schemas.io import ArtifactWriter, write_artifact
-from stages.ingest.geometry import F64, interpolate_poses, lookup, matrices_to_poses, poses_to_matrices
+from stages.ingest.clock import NS, ClockPlan, TimeSource, plan_clocks, spans_overlap
+from stages.ingest.geometry import (
+    F64,
+    interpolate_poses,
+    lookup,
+    matrices_to_poses,
+    pose_matrix,
+    poses_to_matrices,
+)
 from stages.ingest.profile import DatasetProfile, load_profile, profiles_dir
 from stages.ingest.readers import Message, Source, open_source
 from stages.ingest.sink import LabelSidecar, ReorderBuffer, StreamStats, finite_mask, sort_poses
@@ -51,6 +67,28 @@ class IngestParams(StageParams):
     rerun_lidar_points: int = Field(2000, ge=1, description="random points kept per logged lidar scan")
     rerun_flush_scans: int = Field(500, ge=1, description="scans buffered before a Rerun send_columns")
     seed: int = Field(0, description="seed of the lidar downsampling for Rerun")
+    time_source: TimeSource = Field(
+        "auto", description="'auto': line up streams whose header stamps are zero, constant or on another clock; "
+                            "'header': header stamps as they are; 'record': the log's record time")
+    clock_tolerance_s: float = Field(1.0, gt=0, description="auto: header-record offsets further apart than this "
+                                                            "are different clocks, s")
+    clock_sample: int = Field(50, ge=2, description="first messages per stream examined to choose the clock")
+    radar_gap_warn_s: float = Field(1.0, gt=0, description="warn about a time without radar points longer than this, s")
+    base_frame: str = Field("", description="override the profile's base (body) frame name")
+    radar_frame: str = Field("", description="override the radar frame name (when the messages' frame_id is empty)")
+    imu_frame: str = Field("", description="override the IMU frame name")
+    lidar_frame: str = Field("", description="override the lidar frame name")
+    radar_extrinsic: list[float] = Field([], description="base <- radar: a list tx ty tz (m) qx qy qz qw; wins over "
+                                                         "tf and the profile")
+    imu_extrinsic: list[float] = Field([], description="base <- imu: a list tx ty tz (m) qx qy qz qw")
+    lidar_extrinsic: list[float] = Field([], description="base <- lidar: a list tx ty tz (m) qx qy qz qw")
+
+    @field_validator("radar_extrinsic", "imu_extrinsic", "lidar_extrinsic")
+    @classmethod
+    def _seven(cls, v: list[float]) -> list[float]:
+        if v and (len(v) != 7 or not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-9):
+            raise ValueError("give 7 numbers: tx ty tz (m) and a non-zero quaternion qx qy qz qw")
+        return v
 
 
 def _file_digest(path: Path) -> str:
@@ -70,7 +108,8 @@ class IngestStage(Stage):
     def key_material(self, seq: SequenceInfo, params: StageParams) -> dict[str, Any]:
         assert isinstance(params, IngestParams)
         dataset = params.dataset or seq.dataset
-        out: dict[str, Any] = {"profile": dataset, "profile_digest": _file_digest(profiles_dir() / f"{dataset}.toml")}
+        where = Path(dataset) if dataset.endswith(".toml") else profiles_dir() / f"{dataset}.toml"
+        out: dict[str, Any] = {"profile": dataset, "profile_digest": _file_digest(where)}
         if seq.kind == "simulated":
             # the spec, plus the cache folder name: it hashes the simulator's code and world file too
             out["simulated"] = {"world": seq.world, "duration": seq.duration, "seed": seq.seed, "format": seq.format,
@@ -117,6 +156,12 @@ class _Ingest:
         self.rng = np.random.default_rng(p.seed)
         self.rr_buf: dict[str, list[Any]] = {"radar": [], "lidar": []}
         self.imu_buf: list[tuple[int, F64]] = []
+        self.clock: ClockPlan = plan_clocks(src.clock_samples(p.clock_sample), p.time_source, p.clock_tolerance_s)
+        #: radar: time of the last scan with points, empty scans since, and the gaps found (start, length, empties)
+        self.last_points_t: int | None = None
+        self.empty_since = 0
+        self.gaps: list[tuple[int, int, int]] = []
+        self.imu_max_gap_ns = 0
         label_field = [pa.field("label", pa.int8(), nullable=False)]
         self.writers = {
             "radar": ArtifactWriter(ctx.output("radar.parquet"), "radar", extra=label_field, batch_rows=p.batch_rows),
@@ -159,6 +204,10 @@ class _Ingest:
     def _arrive(self, msg: Message) -> None:
         st = self.stats[msg.stream]
         st.messages += 1
+        clock = self.clock.streams.get(msg.stream)
+        if clock is not None:
+            msg.t_ns = clock.time(msg.header_ns, msg.record_ns)
+            msg.record_time = clock.use == "record" or (clock.use == "header" and msg.header_ns == 0)
         st.record_time_used += int(msg.record_time)
         if msg.frame and msg.stream not in self.frames:
             self.frames[msg.stream] = msg.frame.lstrip("/")
@@ -177,6 +226,8 @@ class _Ingest:
     def _emit(self, msg: Message) -> None:
         st = self.stats[msg.stream]
         st.first_t_ns = msg.t_ns if st.first_t_ns is None else st.first_t_ns
+        if msg.stream == "imu" and st.last_t_ns is not None:
+            self.imu_max_gap_ns = max(self.imu_max_gap_ns, msg.t_ns - st.last_t_ns)
         st.last_t_ns = msg.t_ns
         if msg.stream == "imu":
             assert msg.values is not None
@@ -197,6 +248,10 @@ class _Ingest:
         if n_bad:
             cols = {k: v[ok] for k, v in cols.items()}
         n = n_all - n_bad
+        st.empty_messages += int(n_all == 0)
+        st.scans_without_points += int(n == 0)
+        if msg.stream == "radar":
+            self._track_gap(msg.t_ns, n)
         scan = self.scan[msg.stream]
         self.scan[msg.stream] += 1
         self.scan_times[msg.stream].append(msg.t_ns)
@@ -211,6 +266,17 @@ class _Ingest:
         st.points += n
         self.writers[msg.stream].write(out)
         self._buffer_rerun(msg.stream, scan, msg.t_ns, cols)
+
+    def _track_gap(self, t_ns: int, n: int) -> None:
+        """Radar gaps: stretches longer than ``radar_gap_warn_s`` between scans with points."""
+        if n == 0:
+            self.empty_since += 1
+            return
+        last = self.last_points_t
+        if last is not None and t_ns - last > self.p.radar_gap_warn_s * NS:
+            self.gaps.append((last, t_ns - last, self.empty_since))
+        self.last_points_t = t_ns
+        self.empty_since = 0
 
     def _flush_imu(self) -> None:
         if not self.imu_buf:
@@ -255,33 +321,50 @@ class _Ingest:
         return t, v
 
     # -- calibration -------------------------------------------------------------------------------------------
+    def _frame(self, sensor: str) -> str:
+        """A sensor's frame name: --set ingest.<sensor>_frame, else the profile's [frames] entry when the
+        messages carry an empty frame_id, else the messages' frame_id ('' when there is none)."""
+        override = getattr(self.p, f"{sensor}_frame")
+        return override or self.frames.get(sensor) or getattr(self.profile.frames, sensor)
+
     def _base_frame(self) -> str:
-        return self.profile.frames.base or self.frames.get("imu") or self.profile.frames.imu or \
-            self.frames.get("radar", "base")
+        return self.p.base_frame or self.profile.frames.base or self._frame("imu") or self._frame("radar") or "base"
 
     def _calibration(self) -> dict[str, Any]:
         base = self._base_frame()
         out: dict[str, Any] = {"base_frame": base, "convention": "base_from_<sensor>: 4x4, p_base = T @ p_sensor"}
         sources: dict[str, str] = {}
         frames: dict[str, str] = {}
+        ext = self.profile.extrinsics
+        given = set() if ext.fallback else ext.model_fields_set
         for sensor in SENSORS:
-            frame = self.frames.get(sensor) or getattr(self.profile.frames, sensor) or sensor
+            frame = self._frame(sensor)
             frames[sensor] = frame
             T: F64 | None = None
-            if sensor in self.src.calibration:
+            override = getattr(self.p, f"{sensor}_extrinsic")
+            if override:
+                T, sources[sensor] = pose_matrix(override[:3], override[3:]), f"--set ingest.{sensor}_extrinsic"
+            elif sensor in self.src.calibration:
                 T, how = self.src.calibration[sensor]
                 sources[sensor] = f"file {how}"
-            elif self.src.tf_edges:
+            elif self.src.tf_edges and frame:
                 T = lookup(self.src.tf_edges, base, frame)
                 sources[sensor] = "tf"
+            if T is None and sensor in given:
+                T = getattr(self.profile.extrinsics, sensor).matrix()
+                sources[sensor] = f"profile {self.profile.path or self.profile.name} [extrinsics.{sensor}]"
             if T is None and frame == base:
                 T, sources[sensor] = np.eye(4), "identity (sensor frame is the base)"
             if T is None:
                 T = getattr(self.profile.extrinsics, sensor).matrix()
                 sources[sensor] = f"profile '{self.profile.name}' default"
                 if sensor in self.src.streams and self.src.form != "folder":
-                    self.ctx.warn(f"no tf from '{base}' to '{frame}' in {self.path.name}; using the profile's "
-                                  f"default base<-{sensor} extrinsic")
+                    named = f"frame '{frame}'" if frame else f"the {sensor} messages' empty frame_id"
+                    how = "has no tf" if not self.src.tf_edges else f"has no tf from '{base}' to it"
+                    self.ctx.warn(f"{self.path.name} {how} for {named} (topic {self.src.streams[sensor]}) and "
+                                  f"profile '{self.profile.name}' gives no [extrinsics.{sensor}]: assuming base<-"
+                                  f"{sensor} = identity; give it in a profile (pipeline profile new my_rig.toml) or "
+                                  f"with --set ingest.{sensor}_extrinsic=[tx,ty,tz,qx,qy,qz,qw]")
             out[f"base_from_{sensor}"] = np.round(T, 12).tolist()
         out["frames"] = frames
         out["sources"] = sources
@@ -365,8 +448,9 @@ class _Ingest:
             if st.nonfinite_dropped:
                 what = "samples" if stream == "imu" else "points"
                 ctx.warn(f"{stream}: dropped {st.nonfinite_dropped} {what} with NaN/inf values")
-            if st.record_time_used:
+            if st.record_time_used and not (stream in self.clock.streams and self.clock.changed):
                 ctx.warn(f"{stream}: {st.record_time_used} message(s) had a zero header stamp; used the record time")
+        self._report_clocks_and_gaps()
         if self.labels is not None and self.labels.unmatched_scans:
             ctx.warn(f"{self.labels.path}: no labels for {self.labels.unmatched_scans} radar scan(s)")
         ctx.stats["streams"] = {s: st.as_dict() for s, st in self.stats.items() if st.messages or st.points}
@@ -379,6 +463,50 @@ class _Ingest:
                              "mb_per_s": round(self.src.bytes_read / 1e6 / max(seconds, 1e-9), 2)}
         if "radar" in self.src.streams and self.stats["radar"].messages == 0:
             raise UserError(f"{self.path}: radar topic '{self.src.streams['radar']}' holds no messages")
+
+
+    def _report_clocks_and_gaps(self) -> None:
+        ctx, plan, name = self.ctx, self.clock, self.path.name
+        ctx.stats["clock"] = {"time_source": plan.source, "streams": plan.as_dict()}
+        if plan.changed:
+            if plan.source == "auto":
+                ctx.warn(f"{name}: streams on different clocks, lined up (ingest.time_source=auto): {plan.describe()}")
+            elif plan.source == "header":
+                bad = [c for c in plan.streams.values() if c.problem]
+                if bad:
+                    ctx.warn(f"{name}: {'; '.join(f'{c.stream}: {c.problem}' for c in bad)} (ingest.time_source="
+                             f"header); --set ingest.time_source=auto lines the streams up")
+            else:
+                ctx.warn(f"{name}: every stream timed by the bag's record time (ingest.time_source=record): "
+                         f"{plan.describe()}")
+        spans = {s: (st.first_t_ns, st.last_t_ns) for s, st in self.stats.items()
+                 if st.first_t_ns is not None and st.last_t_ns is not None}
+        if "radar" in spans and "imu" in spans and not spans_overlap(spans["radar"], spans["imu"]):
+            t0 = min(spans["radar"][0], spans["imu"][0])
+
+            def rel(s: str) -> str:
+                a, b = spans[s]
+                return f"{(a - t0) / NS:.1f}-{(b - t0) / NS:.1f} s"
+
+            fix = ("set ingest.time_source=record (the bag's record time for both)" if plan.source == "auto" else
+                   "set ingest.time_source=auto (lines up zero or foreign stamps) or record")
+            raise UserError(f"{self.path}: radar and IMU clocks never overlap (radar {rel('radar')}, IMU {rel('imu')}, "
+                            f"time_source={plan.source}); {fix}")
+        radar = self.stats["radar"]
+        ctx.stats["radar_empty_scans"] = radar.scans_without_points
+        first = radar.first_t_ns or 0
+        ctx.stats["radar_gaps"] = [{"start_s": round((a - first) / NS, 3), "length_s": round(d / NS, 3),
+                                    "empty_scans": e} for a, d, e in self.gaps]
+        ctx.stats["imu_max_gap_s"] = round(self.imu_max_gap_ns / NS, 4)
+        if radar.scans_without_points:
+            ctx.warn(f"radar: {radar.scans_without_points} of {radar.messages} scan(s) hold no points "
+                     f"({radar.empty_messages} published empty)")
+        for a, d, e in self.gaps[:5]:
+            ctx.warn(f"radar: no points for {d / NS:.2f} s from {(a - (radar.first_t_ns or a)) / NS:.2f} s into the "
+                     f"radar stream (stamp {a / NS:.3f}, {e} empty scan(s)); odometry dead-reckons through it")
+        if len(self.gaps) > 5:
+            ctx.warn(f"radar: {len(self.gaps) - 5} more gap(s) longer than {self.p.radar_gap_warn_s:g} s "
+                     f"(all in the manifest: radar_gaps)")
 
 
 def buf_first(buf: ReorderBuffer | None) -> str:

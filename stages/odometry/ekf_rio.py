@@ -13,11 +13,21 @@ Measurement (radar velocity in the radar frame; extrinsic imu <- radar = (R_ir, 
 ``H_bg = R_ir^T [t_ir]x``; a chi-square gate rejects outliers. Scans the estimator marks as zero
 velocity for at least ``zero_rate_min_scans`` scans in a row also give a zero-angular-rate update
 (``w_m - b_g = 0``), which makes the gyro bias observable whenever the platform stands still.
+
+Real MEMS IMUs (handheld or vehicle): when the log starts with a standstill (IMU specific force and rate
+steady, radar speed near zero, at least ``standstill_min_s``), the filter starts from it: attitude from the
+mean specific force over the whole standstill, gyro bias = the mean rate, accelerometer bias along gravity
+= ``|f| - g``, velocity zero, and the process noise densities raised to what the standstill shows
+(``max(configured, std / sqrt(rate))``); its scans also give zero-rate updates. Recovery: after
+``recover_after`` velocity updates in a row rejected by the gate, the velocity, attitude and accelerometer
+bias covariances are inflated (``recover_sigma_*``) and the update is tried again, so the filter follows
+the radar again instead of diverging silently; a non-finite state is re-initialised from the radar.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -43,7 +53,7 @@ def so3_exp(w: F64) -> F64:
 @dataclass(frozen=True)
 class EkfConfig:
     gravity: float = 9.80665
-    accel_noise_density: float = 0.02
+    accel_noise_density: float = 0.2
     gyro_noise_density: float = 0.002
     accel_bias_walk: float = 1e-3
     gyro_bias_walk: float = 1e-4
@@ -60,6 +70,18 @@ class EkfConfig:
     zero_rate_sigma: float = 0.002
     zero_rate_min_scans: int = 5
     init_motion_compensation: bool = True
+    standstill_init: bool = True
+    standstill_min_s: float = 1.0
+    standstill_window_s: float = 0.2
+    standstill_accel_std: float = 0.3
+    standstill_gyro_std: float = 0.03
+    standstill_max_speed: float = 0.15
+    standstill_accel_change: float = 0.15
+    standstill_gyro_change: float = 0.01
+    recover_after: int = 3
+    recover_sigma_v: float = 0.5
+    recover_sigma_attitude: float = np.radians(5.0)
+    recover_sigma_accel_bias: float = 0.3
 
 
 @dataclass
@@ -75,7 +97,73 @@ class EkfResult:
     initialized: npt.NDArray[np.bool_]
     #: sqrt of the covariance diagonal per scan (15: p, v, theta, b_g, b_a)
     sigma: F64 = field(default_factory=lambda: np.zeros((0, 15)))
-    stats: dict[str, int] = field(default_factory=dict)
+    #: scans where the covariance was inflated after repeated rejections (or the state re-initialised)
+    recovered: npt.NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Standstill:
+    """The initial standstill found in the IMU: its time span and what it shows."""
+
+    t0_ns: int
+    t1_ns: int
+    gyro_mean: F64
+    accel_mean: F64
+    gyro_noise_density: float
+    accel_noise_density: float
+    samples: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"start_ns": self.t0_ns, "seconds": round((self.t1_ns - self.t0_ns) * 1e-9, 3), "samples": self.samples,
+                "gyro_bias": [round(float(v), 6) for v in self.gyro_mean],
+                "gyro_noise_density": round(self.gyro_noise_density, 6),
+                "accel_noise_density": round(self.accel_noise_density, 5)}
+
+
+def radar_moving(vel: F64, cov: F64, valid: npt.NDArray[np.bool_], max_speed: float) -> npt.NDArray[np.bool_]:
+    """Scans whose ego-velocity is clearly not zero: faster than ``max_speed`` and outside the 99.9 %
+    ellipsoid of their own covariance (an elevation-poor radar reads tenths of m/s in z when still)."""
+    v = np.nan_to_num(np.asarray(vel, dtype=np.float64))
+    c = np.nan_to_num(np.asarray(cov, dtype=np.float64)) + np.eye(3) * 1e-6
+    d2 = np.einsum("si,si->s", v, np.linalg.solve(c, v[:, :, None])[:, :, 0])
+    return valid & (np.linalg.norm(v, axis=1) > max_speed) & (d2 > chi2.ppf(0.999, df=3))
+
+
+def find_standstill(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, t0: int, scan_t: npt.NDArray[np.int64],
+                    moving: npt.NDArray[np.bool_], cfg: EkfConfig) -> Standstill | None:
+    """The standstill starting at ``t0``: consecutive IMU windows of ``standstill_window_s`` whose specific
+    force and rate vary less than ``standstill_accel_std`` / ``standstill_gyro_std`` (per axis) and whose
+    means stay within ``standstill_accel_change`` / ``standstill_gyro_change`` of the first window's (a slow
+    start shows in the means first), cut at the first radar scan that is ``moving``, less one window of
+    margin; None when shorter than ``standstill_min_s``."""
+    win = round(cfg.standstill_window_s * 1e9)
+    fast = scan_t[(scan_t >= t0) & moving]
+    t_stop = int(fast[0]) if len(fast) else int(imu_t[-1])
+    i0 = int(np.searchsorted(imu_t, t0))
+    end = int(t0)
+    first: tuple[F64, F64] | None = None
+    while end + win <= t_stop:
+        lo, hi = np.searchsorted(imu_t, [end, end + win])
+        if hi - lo < 4:
+            break
+        a, g = acc[lo:hi], gyro[lo:hi]
+        if a.std(axis=0).max() > cfg.standstill_accel_std or g.std(axis=0).max() > cfg.standstill_gyro_std:
+            break
+        means = (a.mean(axis=0), g.mean(axis=0))
+        first = first or means
+        if np.abs(means[0] - first[0]).max() > cfg.standstill_accel_change or \
+                np.abs(means[1] - first[1]).max() > cfg.standstill_gyro_change:
+            break
+        end += win
+    end -= win
+    if end - t0 < cfg.standstill_min_s * 1e9:
+        return None
+    i1 = int(np.searchsorted(imu_t, end))
+    a, g = acc[i0:i1], gyro[i0:i1]
+    rate = (i1 - i0 - 1) / max((imu_t[i1 - 1] - imu_t[i0]) * 1e-9, 1e-9)
+    return Standstill(int(t0), int(end), g.mean(axis=0), a.mean(axis=0),
+                      float(g.std(axis=0).mean() / np.sqrt(rate)), float(a.std(axis=0).mean() / np.sqrt(rate)), i1 - i0)
 
 
 class EkfRio:
@@ -95,6 +183,22 @@ class EkfRio:
         q = np.r_[np.full(3, cfg.accel_noise_density ** 2), np.full(3, cfg.gyro_noise_density ** 2),
                   np.full(3, cfg.gyro_bias_walk ** 2), np.full(3, cfg.accel_bias_walk ** 2)]
         self._qc = q  # continuous-time noise densities of [v, theta, bg, ba]
+
+    def set_noise(self, accel_noise_density: float, gyro_noise_density: float) -> None:
+        self._qc[0:3] = accel_noise_density ** 2
+        self._qc[3:6] = gyro_noise_density ** 2
+
+    def inflate(self, sigma_v: float, sigma_attitude: float, sigma_accel_bias: float) -> None:
+        """Recovery: velocity, attitude and accelerometer-bias variances at least these (cross terms dropped)."""
+        for sl, s in ((slice(3, 6), sigma_v), (slice(6, 9), sigma_attitude), (slice(12, 15), sigma_accel_bias)):
+            d = np.maximum(np.diag(self.P)[sl], s * s)
+            self.P[sl, :] = 0.0
+            self.P[:, sl] = 0.0
+            self.P[sl, sl] = np.diag(d)
+
+    def finite(self) -> bool:
+        return bool(np.isfinite(self.p).all() and np.isfinite(self.v).all() and np.isfinite(self.R).all()
+                    and np.isfinite(self.P).all())
 
     def propagate(self, acc: F64, gyro: F64, dt: float) -> None:
         if dt <= 0:
@@ -177,11 +281,12 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
     scans repeat the initial pose (``initialized`` false). Attitude starts gravity-aligned from the mean
     specific force over ``init_window_s`` (yaw 0) less the kinematic acceleration ``dv/dt + w x v`` seen by
     the first two ego-velocities (so a start in motion does not tilt the initial attitude), velocity from
-    that scan's ego-velocity.
+    that scan's ego-velocity. With a standstill at the start (:func:`find_standstill`) the filter starts
+    from it instead (see the module docstring).
     """
     S = len(scan_t)
     out = EkfResult(np.tile(np.eye(4), (S, 1, 1)), np.zeros((S, 3)), np.zeros((S, 3)), np.zeros((S, 3)),
-                    np.zeros(S, bool), np.zeros(S, bool), np.zeros(S, bool), np.zeros((S, 15)))
+                    np.zeros(S, bool), np.zeros(S, bool), np.zeros(S, bool), np.zeros((S, 15)), np.zeros(S, bool))
     R_ir, t_ir = imu_from_radar[:3, :3], imu_from_radar[:3, 3]
     if S == 0 or len(imu_t) < 2:
         return out
@@ -204,13 +309,34 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
         dv = (v1 - v_imu) / ((scan_t[nxt] - t0) * 1e-9)
         if np.all(np.isfinite(dv)):
             f0 = f0 - dv - np.cross(w0, v_imu)
-    R0 = gravity_aligned(f0)
-    ekf = EkfRio(cfg, R0, R0 @ v_imu)
+    still = None
+    if cfg.standstill_init:
+        moving = radar_moving(vel, cov * cfg.velocity_cov_scale, valid, cfg.standstill_max_speed)
+        still = find_standstill(imu_t, acc, gyro, int(t0), scan_t, moving, cfg)
+    if still is not None:
+        R0 = gravity_aligned(still.accel_mean)
+        ekf = EkfRio(cfg, R0, np.zeros(3))
+        ekf.bg = still.gyro_mean.copy()
+        f = still.accel_mean
+        ekf.ba = (np.linalg.norm(f) - cfg.gravity) * f / np.linalg.norm(f)
+        ekf.set_noise(max(cfg.accel_noise_density, still.accel_noise_density),
+                      max(cfg.gyro_noise_density, still.gyro_noise_density))
+        # the bias is the mean of `samples` rates: its std is the rate noise std over sqrt(samples)
+        rate = still.samples / max((still.t1_ns - still.t0_ns) * 1e-9, 1e-9)
+        g_sd = still.gyro_noise_density * np.sqrt(rate / max(still.samples, 1))
+        ekf.P[9:12, 9:12] = np.eye(3) * max(float(g_sd), 1e-4) ** 2
+    else:
+        R0 = gravity_aligned(f0)
+        ekf = EkfRio(cfg, R0, R0 @ v_imu)
     chi_rows = {3: np.arange(3), 2: np.arange(2), 0: np.arange(3)}
-    n_upd = n_rej = n_zaru = 0
+    n_upd = n_rej = n_zaru = n_recover = n_reinit = 0
+    in_row = 0
+    recover_t: list[int] = []
     # standstill runs: a zero-rate update needs this many consecutive zero-velocity scans (a slow creep can pass
-    # the Doppler zero-velocity test while the platform still turns)
+    # the Doppler zero-velocity test while the platform still turns); scans of the initial standstill count too
     zero = valid & (np.asarray(dims) == 0)
+    if still is not None:
+        zero |= (scan_t >= still.t0_ns) & (scan_t <= still.t1_ns)
     run_len = np.zeros(S, np.int64)
     for i in range(S):
         run_len[i] = (run_len[i - 1] + 1 if i else 1) if zero[i] else 0
@@ -238,8 +364,28 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
             c = cov[s] * cfg.velocity_cov_scale if cfg.use_estimator_covariance else np.eye(3) * cfg.velocity_sigma ** 2
             c = np.where(np.isfinite(c), c, 0.0)
             rows = chi_rows.get(int(dims[s]), np.arange(3))
-            if ekf.update_velocity(vel[s], c, rows, gyro[min(k, N - 1)], R_ir, t_ir):
+            w_k = gyro[min(k, N - 1)]
+            if not ekf.finite():  # re-initialise from the radar: velocity, level attitude kept in yaw
+                yaw = float(np.arctan2(out.T_world_imu[s - 1, 1, 0], out.T_world_imu[s - 1, 0, 0]))
+                p_last = out.T_world_imu[s - 1, :3, 3].copy()
+                c_, s_ = np.cos(yaw), np.sin(yaw)
+                R_re = np.array([[c_, -s_, 0.0], [s_, c_, 0.0], [0.0, 0.0, 1.0]])
+                ekf = EkfRio(cfg, R_re, R_re @ (R_ir @ vel[s]))
+                ekf.p = p_last
+                n_reinit += 1
+                out.recovered[s] = True
+            ok = ekf.update_velocity(vel[s], c, rows, w_k, R_ir, t_ir)
+            if not ok:
+                in_row += 1
+                if in_row >= cfg.recover_after:
+                    ekf.inflate(cfg.recover_sigma_v, cfg.recover_sigma_attitude, cfg.recover_sigma_accel_bias)
+                    n_recover += 1
+                    recover_t.append(int(scan_t[s]))
+                    out.recovered[s] = True
+                    ok = ekf.update_velocity(vel[s], c, rows, w_k, R_ir, t_ir)
+            if ok:
                 n_upd += 1
+                in_row = 0
                 out.updated[s] = True
             else:
                 n_rej += 1
@@ -255,5 +401,7 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
         out.sigma[s] = np.sqrt(np.diag(ekf.P))
         out.initialized[s] = True
     out.T_world_imu[:s0] = out.T_world_imu[s0]
-    out.stats = {"start_scan": s0, "velocity_updates": n_upd, "velocity_rejected": n_rej, "zero_rate_updates": n_zaru}
+    out.stats = {"start_scan": s0, "velocity_updates": n_upd, "velocity_rejected": n_rej, "zero_rate_updates": n_zaru,
+                 "recoveries": n_recover, "reinitialisations": n_reinit, "recovery_t_ns": recover_t,
+                 "standstill": still.as_dict() if still is not None else None}
     return out

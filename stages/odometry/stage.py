@@ -37,7 +37,9 @@ class OdometryParams(StageParams):
     anchor: Literal["groundtruth", "origin"] = Field(
         "groundtruth", description="start at the ground-truth pose of the first scan, or at (0, 0, 0)")
     gravity: float = Field(9.80665, gt=0, description="gravity magnitude, m/s^2")
-    accel_noise_density: float = Field(0.02, gt=0, description="accelerometer white noise, m/s^2/sqrt(Hz)")
+    accel_noise_density: float = Field(
+        0.2, gt=0, description="accelerometer process noise, m/s^2/sqrt(Hz): MEMS white noise is ~0.002, the rest "
+                               "covers unmodelled vibration (heel strikes, engines) and misalignment")
     gyro_noise_density: float = Field(0.002, gt=0, description="gyro white noise, rad/s/sqrt(Hz)")
     accel_bias_walk: float = Field(1e-3, ge=0, description="accelerometer bias random walk, m/s^2/sqrt(s)")
     gyro_bias_walk: float = Field(1e-4, ge=0, description="gyro bias random walk, rad/s/sqrt(s)")
@@ -55,6 +57,24 @@ class OdometryParams(StageParams):
     zero_rate_min_scans: int = Field(5, ge=1, description="consecutive zero-velocity scans before a zero-rate update")
     init_motion_compensation: bool = Field(
         True, description="remove the kinematic acceleration (from the first ego-velocities) before gravity alignment")
+    standstill_init: bool = Field(True, description="start from an initial standstill when there is one (attitude, "
+                                                    "biases and noise floors from it)")
+    standstill_min_s: float = Field(1.0, gt=0, description="shortest initial standstill used, s")
+    standstill_accel_std: float = Field(0.3, gt=0, description="standstill: largest specific-force std per axis in "
+                                                               "a 0.2 s window, m/s^2")
+    standstill_gyro_std: float = Field(0.03, gt=0, description="standstill: largest rate std per axis, rad/s")
+    standstill_max_speed: float = Field(0.15, gt=0, description="standstill: largest radar speed, m/s")
+    standstill_accel_change: float = Field(0.15, gt=0, description="standstill: largest change of the mean "
+                                                                   "specific force from the first window, m/s^2")
+    standstill_gyro_change: float = Field(0.01, gt=0, description="standstill: largest change of the mean rate "
+                                                                  "from the first window, rad/s")
+    recover_after: int = Field(3, ge=1, description="velocity updates rejected in a row before the covariance is "
+                                                    "inflated and the update retried")
+    recover_sigma_v: float = Field(0.5, gt=0, description="velocity std after a recovery, m/s")
+    recover_sigma_attitude_deg: float = Field(5.0, gt=0, description="attitude std after a recovery, degrees")
+    recover_sigma_accel_bias: float = Field(0.3, gt=0, description="accelerometer bias std after a recovery, m/s^2")
+    reject_warn_share: float = Field(0.1, ge=0, le=1, description="warn when more than this share of velocity "
+                                                                  "updates is rejected by the gate")
 
 
 class OdometryStage(Stage):
@@ -95,8 +115,10 @@ class OdometryStage(Stage):
                 anchored = "groundtruth"
                 ctx.stats["anchor_scan"] = int(scans[at])
             else:
-                if p.anchor == "groundtruth":
+                if p.anchor == "groundtruth" and len(gt_t):
                     ctx.warn("no ground truth during the odometry: anchored at the origin instead")
+                elif p.anchor == "groundtruth":  # a radar + IMU log: nothing to anchor to, nothing wrong
+                    ctx.console.print("[dim]odometry: the log has no ground truth; anchored at the origin[/]")
                 x, y, yaw = se2_compose_anchor(x, y, yaw, first, 0.0, 0.0, 0.0)
         write_artifact({"scan": scans.astype(np.int32), "t_ns": scan_t, "x": x, "y": y, "yaw": yaw,
                         "valid": valid}, ctx.output("odometry.parquet"), "odometry",
@@ -147,17 +169,54 @@ class OdometryStage(Stage):
             use_estimator_covariance=p.use_estimator_covariance, gate_probability=p.gate_probability,
             zero_rate_update=p.zero_rate_update, zero_rate_sigma=p.zero_rate_sigma,
             zero_rate_min_scans=p.zero_rate_min_scans,
-            init_motion_compensation=p.init_motion_compensation)
+            init_motion_compensation=p.init_motion_compensation, standstill_init=p.standstill_init,
+            standstill_min_s=p.standstill_min_s, standstill_accel_std=p.standstill_accel_std,
+            standstill_gyro_std=p.standstill_gyro_std, standstill_max_speed=p.standstill_max_speed,
+            standstill_accel_change=p.standstill_accel_change, standstill_gyro_change=p.standstill_gyro_change,
+            recover_after=p.recover_after, recover_sigma_v=p.recover_sigma_v,
+            recover_sigma_attitude=np.radians(p.recover_sigma_attitude_deg),
+            recover_sigma_accel_bias=p.recover_sigma_accel_bias)
         imu_from_radar = np.linalg.inv(base_from_imu) @ base_from_radar
         res = run_ekf(imu_t, acc, gyro, scan_t, vel, cov, dims, valid, imu_from_radar, cfg)
         if not res.initialized.any():
+            t0 = min(int(imu_t[0]), int(scan_t[0])) if len(scan_t) else int(imu_t[0])
+            span = (f"radar scans {(scan_t[0] - t0) * 1e-9:.1f}-{(scan_t[-1] - t0) * 1e-9:.1f} s, "
+                    f"{int(valid.sum())} with a valid ego-velocity" if len(scan_t) else "no radar scans")
             raise UserError(f"{ctx.input('filter', 'ego_velocity.parquet')}: no scan with a valid ego-velocity "
-                            f"inside the IMU time span; the EKF cannot start")
+                            f"inside the IMU time span ({span}; IMU {(imu_t[0] - t0) * 1e-9:.1f}-"
+                            f"{(imu_t[-1] - t0) * 1e-9:.1f} s); rerun ingest with --set ingest.time_source=auto "
+                            f"(or record) to line the clocks up")
+        self._report_ekf(ctx, res.stats, scan_t)
         ctx.stats["ekf"] = res.stats
         ctx.stats["gyro_bias_final"] = [round(float(b), 6) for b in res.gyro_bias[-1]]
         ctx.stats["accel_bias_final"] = [round(float(b), 5) for b in res.accel_bias[-1]]
         T_wb = res.T_world_imu @ np.linalg.inv(base_from_imu)
         return scans, scan_t, T_wb, res.initialized
+
+    @staticmethod
+    def _report_ekf(ctx: StageContext, st: dict[str, Any], scan_t: npt.NDArray[np.int64]) -> None:
+        """Warnings: a large share of rejected velocity updates, recoveries, the standstill used."""
+        p: OdometryParams = ctx.params
+        n_upd, n_rej = st["velocity_updates"], st["velocity_rejected"]
+        total = n_upd + n_rej
+        t0 = int(scan_t[0]) if len(scan_t) else 0
+        if total and n_rej / total > p.reject_warn_share:
+            ctx.warn(f"EKF: the chi-square gate rejected {n_rej} of {total} velocity updates "
+                     f"({100 * n_rej / total:.0f} % > {100 * p.reject_warn_share:g} %): the IMU is noisier than "
+                     f"odometry.accel_noise_density={p.accel_noise_density:g} / gyro_noise_density="
+                     f"{p.gyro_noise_density:g}, or the radar-IMU extrinsic or clocks are off")
+        if st["recoveries"] or st["reinitialisations"]:
+            when = ", ".join(f"{(t - t0) * 1e-9:.1f}" for t in st["recovery_t_ns"][:8])
+            more = " ..." if len(st["recovery_t_ns"]) > 8 else ""
+            ctx.warn(f"EKF: recovered {st['recoveries']} time(s) after {p.recover_after} rejected velocity updates "
+                     f"in a row (covariance inflated; at {when}{more} s)"
+                     + (f", re-initialised {st['reinitialisations']} time(s) from a non-finite state"
+                        if st["reinitialisations"] else ""))
+        still = st.get("standstill")
+        if still:
+            ctx.console.print(f"[dim]odometry: started from a {still['seconds']} s standstill (gyro noise "
+                              f"{still['gyro_noise_density']:.2g} rad/s/sqrt(Hz), accel "
+                              f"{still['accel_noise_density']:.2g} m/s^2/sqrt(Hz))[/]")
 
     def _from_bag(self, ctx: StageContext
                   ) -> tuple[npt.NDArray[Any], npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.bool_]]:

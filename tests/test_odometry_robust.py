@@ -1,0 +1,102 @@
+"""EKF-RIO on real IMUs: the initial standstill (attitude, biases, noise) and recovery from repeated rejections."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.ingest.geometry import pose_matrix
+from stages.odometry.ekf_rio import EkfConfig, find_standstill, radar_moving, run_ekf
+from tests.test_filter_scene import circle_run
+from tests.test_ingest_logs import BASE_FROM_IMU
+
+NS = 1_000_000_000
+
+
+def _still_then_move(still_s: float = 2.0, rate: float = 400.0, seed: int = 0) -> tuple[np.ndarray, ...]:
+    """IMU at rest (white noise, biases, tilted) for ``still_s``, then shaken; radar speeds zero then 1 m/s."""
+    rng = np.random.default_rng(seed)
+    n = int(4.0 * rate)
+    t = (np.arange(n) / rate * NS).astype(np.int64)
+    g_up = np.array([0.3, -0.2, 9.8])  # tilted: gravity partly on x and y
+    bias_g = np.array([0.004, -0.003, 0.006])
+    acc = np.tile(g_up, (n, 1)) + rng.normal(0, 0.002 * np.sqrt(rate), (n, 3))
+    gyro = np.tile(bias_g, (n, 1)) + rng.normal(0, 2.5e-4 * np.sqrt(rate), (n, 3))
+    moving = t >= still_s * NS
+    acc[moving] += rng.normal(0, 1.5, (int(moving.sum()), 3))
+    gyro[moving] += rng.normal(0, 0.2, (int(moving.sum()), 3))
+    scan_t = (np.arange(40) * 0.1 * NS).astype(np.int64)
+    vel = np.zeros((40, 3))
+    vel[scan_t >= still_s * NS, 0] = 1.0
+    return t, acc, gyro, scan_t, vel, bias_g
+
+
+def test_standstill_found_with_its_bias_and_noise() -> None:
+    t, acc, gyro, scan_t, vel, bias_g = _still_then_move()
+    cov = np.tile(np.eye(3) * 0.01, (len(scan_t), 1, 1))
+    moving = radar_moving(vel, cov, np.ones(len(scan_t), bool), 0.15)
+    st = find_standstill(t, acc, gyro, 0, scan_t, moving, EkfConfig())
+    assert st is not None
+    assert 1.6 <= (st.t1_ns - st.t0_ns) / NS <= 2.0  # ends before the motion (one window of margin)
+    np.testing.assert_allclose(st.gyro_mean, bias_g, atol=3e-4)
+    assert st.gyro_noise_density == pytest.approx(2.5e-4, rel=0.1)
+    assert st.accel_noise_density == pytest.approx(0.002, rel=0.1)
+    # a log that starts moving has none
+    assert find_standstill(t, acc, gyro, int(2.0 * NS), scan_t, moving, EkfConfig()) is None
+
+
+def test_radar_moving_needs_speed_and_significance() -> None:
+    vel = np.array([[0.0, 0.0, 0.2], [0.5, 0.0, 0.0], [0.05, 0.0, 0.0]])
+    cov = np.stack([np.diag([1e-3, 1e-3, 0.05]), np.eye(3) * 1e-3, np.eye(3) * 1e-6])
+    # 0.2 m/s in z with a 0.22 m/s std is noise; 0.5 m/s in x is motion; 0.05 m/s is below the speed floor
+    np.testing.assert_array_equal(radar_moving(vel, cov, np.ones(3, bool), 0.15), [False, True, False])
+
+
+def test_ekf_starts_from_the_standstill() -> None:
+    t, acc, gyro, scan_t, vel, bias_g = _still_then_move()
+    vel[:] = 0.0  # stays still for the radar: only the start matters here
+    acc[:], gyro[:] = acc[:800].mean(axis=0), gyro[:800].mean(axis=0)
+    cov = np.tile(np.eye(3) * 0.01, (len(scan_t), 1, 1))
+    res = run_ekf(t, acc, gyro, scan_t, vel, cov, np.full(len(scan_t), 3), np.ones(len(scan_t), bool), np.eye(4),
+                  EkfConfig())
+    assert res.stats["standstill"] is not None
+    np.testing.assert_allclose(res.gyro_bias[0], bias_g, atol=3e-4)
+    up = res.T_world_imu[0, :3, :3] @ (acc[0] / np.linalg.norm(acc[0]))
+    np.testing.assert_allclose(up, [0, 0, 1], atol=1e-6)  # attitude from the standstill's specific force
+    assert np.abs(res.T_world_imu[-1, :3, 3]).max() < 0.05  # and it stays put
+
+
+def _circle(offset_from: int | None, recover_after: int) -> tuple[dict[str, object], np.ndarray, np.ndarray]:
+    run = circle_run(duration=20.0, seed=0, gyro_noise=1.5e-4, accel_noise=6e-4, clutter=0, ghosts=0)
+    sc = run.scene
+    scan_t = np.array([t for t, _ in sc.radar], dtype=np.int64)
+    rng = np.random.default_rng(1)
+    vel = run.v_radar + rng.normal(0, 0.02, run.v_radar.shape)
+    if offset_from is not None:
+        vel[offset_from:, 0] += 0.6  # the radar disagrees with the IMU from here on (e.g. a bad IMU stretch)
+    cov = np.tile(np.eye(3) * 0.02 ** 2, (len(scan_t), 1, 1))
+    imu_from_radar = np.linalg.inv(pose_matrix(*BASE_FROM_IMU)) @ run.base_from_radar
+    res = run_ekf(sc.imu_t, sc.imu[:, :3], sc.imu[:, 3:], scan_t, vel, cov, np.full(len(scan_t), 3),
+                  np.ones(len(scan_t), bool), imu_from_radar, EkfConfig(accel_noise_density=0.02,
+                                                                         recover_after=recover_after))
+    v_radar_est = np.einsum("ji,sj->si", imu_from_radar[:3, :3],
+                            np.einsum("sji,sj->si", res.T_world_imu[:, :3, :3], res.velocity))
+    target = run.v_radar.copy()  # what the radar says, without its noise
+    if offset_from is not None:
+        target[offset_from:, 0] += 0.6
+    return res.stats, v_radar_est, target
+
+
+def test_recovery_follows_the_radar_instead_of_rejecting_it_forever() -> None:
+    # a clean run never needs a recovery; its velocity error is the baseline of this comparison (which leaves
+    # out the lever-arm term w x t of the radar velocity)
+    clean, v_c, target_c = _circle(offset_from=None, recover_after=3)
+    assert clean["recoveries"] == 0 and clean["velocity_rejected"] <= 3
+    base = np.abs(v_c[110:, 0] - target_c[110:, 0]).mean()
+    stats, v_est, target = _circle(offset_from=100, recover_after=3)
+    assert stats["recoveries"] >= 1 and stats["velocity_rejected"] <= 10
+    assert np.abs(v_est[110:, 0] - target[110:, 0]).mean() < base + 0.02  # on the radar again within a second
+    # without recovery the gate keeps rejecting: the silent divergence of the issue
+    stats_off, v_off, _ = _circle(offset_from=100, recover_after=10 ** 6)
+    assert stats_off["recoveries"] == 0 and stats_off["velocity_rejected"] > 50
+    assert np.abs(v_off[110:, 0] - target[110:, 0]).mean() > base + 0.2
