@@ -62,6 +62,8 @@ class SlamConfig:
     #: array backend of the Hilbert methods' particle maps and filter loop, and its device
     backend: Backend = "numpy"
     device: Device = "auto"
+    #: torch CPU threads (0: torch's default, one per core)
+    torch_threads: int = 1
     grid: GridModel = field(default_factory=GridModel)
     grid_resolution: float = 0.1
     estimate: Literal["best_per_scan", "final_best_history"] = "best_per_scan"
@@ -204,7 +206,7 @@ def _run_torch(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, form: Liter
                device: str, odometry: F64, scans: Sequence[BeamSamples], rng: np.random.Generator,
                observer: Observer, on_step: Callable[[], None] | None) -> FilterHistory:
     """The Hilbert method's filter on the torch backend (imported only here: torch is optional)."""
-    from stages.slam.torch_filter import TorchRBPF
+    from stages.slam.torch_filter import TorchRBPF, cpu_threads
     from stages.slam.torch_maps import TorchHilbertMaps
 
     if cfg.map_update != "kalman":
@@ -212,7 +214,9 @@ def _run_torch(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, form: Liter
     maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
                             cfg.weighting(method), dtype=cfg.dtype, form=form, device=device)
     f = TorchRBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold)
-    return f.run(odometry_increments(odometry), scans, observer=observer, on_step=on_step)  # type: ignore[arg-type]
+    with cpu_threads(cfg.torch_threads if device == "cpu" else 0):
+        return f.run(odometry_increments(odometry), scans, observer=observer,  # type: ignore[arg-type]
+                     on_step=on_step)
 
 
 def map_along(

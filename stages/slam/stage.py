@@ -76,6 +76,8 @@ class SlamParams(StageParams):
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="device of the torch backend: cuda, cpu, or auto (cuda when torch sees one, else cpu; "
         "the fallback is logged); numpy runs on the cpu")
+    torch_threads: int = Field(1, ge=0, description="CPU threads of the torch backend on the cpu (0 = torch's "
+                               "default, one per core; one thread is far faster on a shared machine, README)")
     # -- measurements (Sec. IV-B, Fig. 3a)
     max_range: float = Field(5.0, gt=0, description="beams longer than this are dropped (m, Table II)")
     min_range: float = Field(0.0, ge=0, description="beams shorter than this are dropped (m)")
@@ -142,7 +144,7 @@ class SlamParams(StageParams):
             noise=MotionNoise(self.motion_std_xy, self.motion_std_yaw, self.motion_rel_trans, self.motion_rel_rot),
             resampling=self.resampling, resample_threshold=self.resample_threshold, map_update=self.map_update,
             laplace_iterations=self.laplace_iterations, map_form=self.map_form, dtype=self.dtype,
-            workers=self.workers, backend=self.backend, device=self.device,
+            workers=self.workers, backend=self.backend, device=self.device, torch_threads=self.torch_threads,
             grid=GridModel(self.grid_l_occ, self.grid_l_free, -self.grid_l_clamp, self.grid_l_clamp, 0.0,
                            self.grid_sigma_hit, self.grid_max_dist, self.grid_z_hit, self.grid_z_rand),
             grid_resolution=self.grid_resolution, estimate=self.estimate,

@@ -10,7 +10,8 @@ history stays on the device until :meth:`TorchRBPF.finish`.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -22,6 +23,23 @@ from stages.slam.rbpf import FilterHistory, MotionNoise, Resampling, StepResult
 from stages.slam.torch_maps import TorchHilbertMaps
 
 F64 = npt.NDArray[np.floating[Any]]
+
+
+@contextmanager
+def cpu_threads(n: int) -> Iterator[None]:
+    """Run with ``n`` torch CPU threads (0: leave torch's setting), restored afterwards.
+
+    On a shared machine torch's default of one thread per core collapses: the batched kernels of a
+    small map are short and the threads wait for each other (measured 25-50x slower than one thread
+    with the two cores busy; README, "torch backend").
+    """
+    old = torch.get_num_threads()
+    if n > 0:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
 
 
 def wrap_angle_t(a: torch.Tensor) -> torch.Tensor:
