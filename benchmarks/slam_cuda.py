@@ -99,6 +99,9 @@ def main(argv: list[str]) -> int:
                                               budget_s=args.budget)
                     except torch.cuda.OutOfMemoryError:
                         row = f"| {Np} | {M} | {label} | | | {dt} | out of memory | | | | | |"
+                    except RuntimeError as exc:  # report it and go on with the other configurations
+                        msg = str(exc).splitlines()[0][:80] if str(exc) else type(exc).__name__
+                        row = f"| {Np} | {M} | {label} | | | {dt} | failed: {msg} | | | | | |"
                     else:
                         bmm = rates[dt]["bmm1024" if M >= 1024 else "bmm256"]
                         row = (f"| {Np} | {M} | {label} | {r['n']:.0f} ({r['b']:.0f}) | {r['form']} | {dt} | "
