@@ -12,6 +12,11 @@ GFLOP/s counts the dominant operations of the chosen form (``methods.step_flops`
 with ``a @ b`` on two 2048 x 2048 float64 matrices (all BLAS threads) timed in the same run. The
 radar runs at 10 Hz, so real time is 0.1 s per scan. Scaling rows vary N_p and M on the medium scans;
 float32 rows report their speed and their log-likelihood difference to float64.
+
+The torch backend (``slam.backend = torch``) on the CPU runs beside numpy at each density (interleaved:
+numpy, torch with 1 thread, and at medium density torch with 2 threads, which collapses on a shared
+machine), when torch is installed. Its CUDA benchmark is the
+separate one-command script ``python -m benchmarks.slam_cuda`` (a GPU, a few minutes).
 """
 
 from __future__ import annotations
@@ -71,6 +76,15 @@ def _time_filter(cfg: SlamConfig, beams: int, steps: int, M: int) -> dict[str, A
     return {"sec": sec, "mean": mean, "gflops": flops / sec / 1e9, "flops": flops, "n": n, "b": b, "form": form}
 
 
+def _torch_cpu(beams: int, steps: int, threads: tuple[int, ...]) -> dict[int, dict[str, Any]]:
+    """The torch backend on the CPU with each number of ``threads`` (empty without torch)."""
+    try:
+        from benchmarks.slam_torch import time_torch_filter
+    except ImportError:
+        return {}
+    return {n: time_torch_filter(SlamConfig(torch_threads=n), beams, steps, 256, "cpu") for n in threads}
+
+
 def _float32_accuracy(beams: int, steps: int, form: str = "covariance") -> float:
     """Largest |log-likelihood difference| float32 vs float64 over a short run, relative to the
     spread of the particles' log-likelihoods (what decides the weights)."""
@@ -99,7 +113,10 @@ def run(quick: bool = False) -> list[Result]:
     steps = 8 if quick else 30
     cfg = SlamConfig()
     densities = (("sparse", 6), ("medium", 30), ("dense", 80))
-    main = [(label, _time_filter(cfg, beams, steps, 256)) for label, beams in densities]
+    main, torch_rows = [], []
+    for label, beams in densities:  # interleaved, the machine may be shared
+        main.append((label, _time_filter(cfg, beams, steps, 256)))
+        torch_rows.append((label, _torch_cpu(beams, steps, (1, 2) if label == "medium" else (1,))))
     ref = max(ref0, _matmul_rate(size))  # the better of before and after: the machine may be shared
     out: list[Result] = [Result(AREA, "numpy matmul float64", ref, "GFLOP/s",
                                 note=f"{size}^2 @ {size}^2, best before/after, reference")]
@@ -111,6 +128,12 @@ def run(quick: bool = False) -> list[Result]:
                           FRAME_S / r["mean"], ">= 1 (real time)", note))
         out.append(Result(AREA, f"GFLOP/s Np=200 M=256 {label}", r["gflops"], "GFLOP/s", "numpy matmul",
                           r["gflops"] / ref, ">= 0.5", note + " (modelled dominant flops, median step)"))
+    for (label, r), (_, rt) in zip(main, torch_rows, strict=True):
+        for threads, t in rt.items():
+            out.append(Result(AREA, f"step Np=200 M=256 {label} torch cpu {threads} thread(s)", t["mean"], "s/scan",
+                              "10 Hz frame (0.1 s)", FRAME_S / t["mean"], "",
+                              f"{t['form']} form; numpy (2 workers) {r['mean']:.3f} s/scan in the same run: torch / "
+                              f"numpy = {t['mean'] / r['mean']:.2f}; {t['gflops']:.1f} GFLOP/s"))
     r0 = _time_filter(SlamConfig(workers=0), 6, steps, 256)
     out.append(Result(AREA, "step Np=200 M=256 sparse, in process", r0["mean"], "s/scan", "10 Hz frame (0.1 s)",
                       FRAME_S / r0["mean"], "", f"{r0['form']} form, all BLAS threads, no workers"))

@@ -16,11 +16,13 @@ import numpy as np
 import numpy.typing as npt
 
 from stages.slam import hilbert_map as hm
+from stages.slam.backend import Backend, Device, resolve_device
 from stages.slam.beam_sampling import BeamSamples, to_world
 from stages.slam.grid_map import GridModel, GridParticleMaps, make_grid_spec
 from stages.slam.parallel import ParallelHilbertMaps
 from stages.slam.rbpf import (
     RBPF,
+    FilterHistory,
     HilbertParticleMaps,
     HilbertWeighting,
     MotionNoise,
@@ -57,6 +59,11 @@ class SlamConfig:
     laplace_iterations: int = 20
     dtype: Literal["float64", "float32"] = "float64"
     workers: int = 2
+    #: array backend of the Hilbert methods' particle maps and filter loop, and its device
+    backend: Backend = "numpy"
+    device: Device = "auto"
+    #: torch CPU threads (0: torch's default, one per core)
+    torch_threads: int = 1
     grid: GridModel = field(default_factory=GridModel)
     grid_resolution: float = 0.1
     estimate: Literal["best_per_scan", "final_best_history"] = "best_per_scan"
@@ -85,6 +92,7 @@ class MethodResult:
     theta: F64 | None = None  # best particle's final map
     cov: F64 | None = None
     form: str = ""  # map form of the Hilbert methods
+    device: str = "cpu"  # where the Hilbert methods' filter ran (``cpu`` or ``cuda``)
 
 
 def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]:
@@ -157,35 +165,58 @@ def run_method(
         return MethodResult(method, odometry.copy(), np.ones(len(odometry)), time.perf_counter() - t0)
     rng = np.random.default_rng(seed)
     form: Literal["information", "covariance"] = "information"
+    maps: GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps | None = None
     if method == "fastslam_grid":
         spec = make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution)
-        maps: GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps = GridParticleMaps(
-            spec, cfg.n_particles, cfg.grid, cfg.likelihood_exponent)
+        maps = GridParticleMaps(spec, cfg.n_particles, cfg.grid, cfg.likelihood_exponent)
     elif method in HILBERT_METHODS:
         form = choose_form(cfg, method, scans, basis.M)
-        maps = make_hilbert_maps(cfg, basis, method, cfg.n_particles, form)
+        if cfg.backend == "numpy":
+            maps = make_hilbert_maps(cfg, basis, method, cfg.n_particles, form)
     else:
         raise ValueError(f"unknown method {method!r}; one of {', '.join(METHODS)}")
     best_map: dict[str, F64] = {}
 
-    def keep_best(i: int, f: RBPF, best: int) -> None:
-        if i == len(odometry) - 1 and isinstance(f.maps, HilbertParticleMaps | ParallelHilbertMaps):
+    def keep_best(i: int, f: Any, best: int) -> None:
+        if i == len(odometry) - 1 and hasattr(f.maps, "map_of"):
             best_map["theta"], best_map["cov"] = f.maps.map_of(best)
         if observer is not None:
             observer(i, f, best)
 
-    try:
-        f = RBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold)
-        h = f.run(odometry_increments(odometry), scans, observer=keep_best, on_step=on_step)
-    finally:
-        if isinstance(maps, ParallelHilbertMaps):
-            maps.close()
+    device = "cpu"
+    if maps is None:
+        device = resolve_device(cfg.backend, cfg.device)[0]
+        h = _run_torch(cfg, basis, method, form, device, odometry, scans, rng, keep_best, on_step)
+    else:
+        try:
+            f = RBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold)
+            h = f.run(odometry_increments(odometry), scans, observer=keep_best, on_step=on_step)
+        finally:
+            if isinstance(maps, ParallelHilbertMaps):
+                maps.close()
     poses = h.final_best_history() if cfg.estimate == "final_best_history" else h.best_trajectory()
     return MethodResult(
         method, poses, np.asarray(h.n_eff), time.perf_counter() - t0, int(np.sum(h.resampled)),
         np.asarray(h.particles), best_map.get("theta"), best_map.get("cov"),
-        form if method in HILBERT_METHODS else "",
+        form if method in HILBERT_METHODS else "", device,
     )
+
+
+def _run_torch(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, form: Literal["information", "covariance"],
+               device: str, odometry: F64, scans: Sequence[BeamSamples], rng: np.random.Generator,
+               observer: Observer, on_step: Callable[[], None] | None) -> FilterHistory:
+    """The Hilbert method's filter on the torch backend (imported only here: torch is optional)."""
+    from stages.slam.torch_filter import TorchRBPF, cpu_threads
+    from stages.slam.torch_maps import TorchHilbertMaps
+
+    if cfg.map_update != "kalman":
+        raise ValueError("the torch backend implements the Kalman map update; use backend = numpy for laplace")
+    maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
+                            cfg.weighting(method), dtype=cfg.dtype, form=form, device=device)
+    f = TorchRBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold)
+    with cpu_threads(cfg.torch_threads if device == "cpu" else 0):
+        return f.run(odometry_increments(odometry), scans, observer=observer,  # type: ignore[arg-type]
+                     on_step=on_step)
 
 
 def map_along(

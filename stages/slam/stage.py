@@ -24,6 +24,7 @@ from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams
 from schemas.io import read_artifact, write_artifact
 from stages.slam import hilbert_map as hm
+from stages.slam.backend import resolve_device
 from stages.slam.beam_sampling import BeamSamples, radar_to_body_2d, sample_beams, to_world
 from stages.slam.grid_map import GridModel
 from stages.slam.methods import (
@@ -35,8 +36,7 @@ from stages.slam.methods import (
     domain_from_trajectory,
     run_method,
 )
-from stages.slam.parallel import ParallelHilbertMaps
-from stages.slam.rbpf import RBPF, HilbertParticleMaps, MotionNoise
+from stages.slam.rbpf import MotionNoise
 
 F64 = npt.NDArray[np.floating[Any]]
 
@@ -69,7 +69,15 @@ class SlamParams(StageParams):
         "cost model at the sequence's samples per scan)")
     dtype: Literal["float64", "float32"] = Field("float64", description="precision of the particle maps")
     workers: int = Field(2, ge=0, description="worker processes sharing the particle maps (information form), one "
-                         "BLAS thread each; 0 = in process")
+                         "BLAS thread each; 0 = in process (numpy backend)")
+    backend: Literal["numpy", "torch"] = Field(
+        "numpy", description="array backend of the RICH-SLAM particle maps and filter loop: numpy (CPU, worker "
+        "processes) or torch (batched tensors on slam.device; needs the learn extra)")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="device of the torch backend: cuda, cpu, or auto (cuda when torch sees one, else cpu; "
+        "the fallback is logged); numpy runs on the cpu")
+    torch_threads: int = Field(1, ge=0, description="CPU threads of the torch backend on the cpu (0 = torch's "
+                               "default, one per core; one thread is far faster on a shared machine, README)")
     # -- measurements (Sec. IV-B, Fig. 3a)
     max_range: float = Field(5.0, gt=0, description="beams longer than this are dropped (m, Table II)")
     min_range: float = Field(0.0, ge=0, description="beams shorter than this are dropped (m)")
@@ -119,6 +127,11 @@ class SlamParams(StageParams):
                              " or set basis_kind = 'circular')")
         if self.z_min is not None and self.z_max is not None and self.z_min > self.z_max:
             raise ValueError(f"z_min {self.z_min} > z_max {self.z_max}")
+        if self.backend == "torch" and self.map_update != "kalman":
+            raise ValueError("backend = torch implements the Kalman map update only; use backend = numpy for "
+                             "map_update = laplace")
+        if self.backend == "numpy" and self.device == "cuda":
+            raise ValueError("device = cuda needs backend = torch (the numpy backend runs on the cpu)")
         return self
 
     def config(self) -> SlamConfig:
@@ -131,7 +144,7 @@ class SlamParams(StageParams):
             noise=MotionNoise(self.motion_std_xy, self.motion_std_yaw, self.motion_rel_trans, self.motion_rel_rot),
             resampling=self.resampling, resample_threshold=self.resample_threshold, map_update=self.map_update,
             laplace_iterations=self.laplace_iterations, map_form=self.map_form, dtype=self.dtype,
-            workers=self.workers,
+            workers=self.workers, backend=self.backend, device=self.device, torch_threads=self.torch_threads,
             grid=GridModel(self.grid_l_occ, self.grid_l_free, -self.grid_l_clamp, self.grid_l_clamp, 0.0,
                            self.grid_sigma_hit, self.grid_max_dist, self.grid_z_hit, self.grid_z_rand),
             grid_resolution=self.grid_resolution, estimate=self.estimate,
@@ -154,6 +167,10 @@ class SlamStage(Stage):
         samples = read_samples(ctx, scans, base_from_radar, p)
         half, centre = domain_from_trajectory(odo[:, :2], p.domain_padding)
         basis = hm.make_basis(half, centre, p.n_basis, p.basis_kind)
+        device, note = resolve_device(p.backend, p.device)
+        if note:
+            ctx.console.print(f"[yellow]slam: {note}[/]")
+        ctx.stats.update({"backend": p.backend, "device": device, **({"device_note": note} if note else {})})
         n_samples = np.array([s.n for s in samples])
         ctx.stats.update({
             "scans": len(scans), "scans_with_samples": int(np.sum(n_samples > 0)),
@@ -178,6 +195,7 @@ class SlamStage(Stage):
                     "resamplings": res.resampled,
                     "n_eff_median": float(np.median(res.n_eff)) if len(res.n_eff) else None,
                     "map_form": res.form,
+                    **({"device": res.device} if m in HILBERT_METHODS else {}),
                 }
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
                                   f"s/scan), {res.resampled} resamplings[/]")
@@ -277,14 +295,17 @@ class MapTracker:
         self.image_axes = (np.arange(lo[0] + p.image_spacing / 2, hi[0], p.image_spacing),
                            np.arange(lo[1] + p.image_spacing / 2, hi[1], p.image_spacing))
 
-    def observe(self, i: int, f: RBPF, best: int) -> None:
-        assert isinstance(f.maps, HilbertParticleMaps | ParallelHilbertMaps)
+    def observe(self, i: int, f: Any, best: int) -> None:
+        """At scan ``i`` of a Hilbert method's filter (``RBPF`` or ``TorchRBPF``): the best particle's pose
+        (recorded in the history just before) and, every ``stats_every`` scans, its map."""
+        assert hasattr(f.maps, "map_of")
+        pose = f.history.best_pose[-1]
         last = i == len(self.scans) - 1
         if i % self.p.stats_every == 0 or last or i in self.snapshot_at:
             theta, cov = f.maps.map_of(best)
-            self._observe_map(i, f.poses[best], theta, cov)
+            self._observe_map(i, pose, theta, cov)
         else:
-            self._observe_map(i, f.poses[best], None, None)
+            self._observe_map(i, pose, None, None)
 
     def _observe_map(self, i: int, pose: F64, theta: F64 | None, cov: F64 | None) -> None:
         near = np.sum((self.cells - pose[:2]) ** 2, axis=1) <= self.p.max_range**2
