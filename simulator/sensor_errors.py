@@ -14,8 +14,8 @@ Radar (applied by :mod:`simulator.simulate`):
 - time offset: each scan measures the scene ``radar_time_offset_s`` before the time it is stamped with
   (positive: the stamp is late, as when a driver stamps a frame after processing and transfer);
 - mounting error: the true mount is the stated one (what ``/tf``, ``calib/`` or the profile says) moved by
-  ``radar_mount_offset_m`` (base frame) and rotated by ``R_e`` (roll, pitch, yaw about the radar's own
-  axes); the radar reports its points in the true frame, ``p_true = R_e^T p_stated``. Detection (field of
+  ``radar_mount_offset_m`` (base frame) and rotated by ``R_e`` (roll, pitch, yaw about the stated radar
+  frame's x, y, z axes, scipy's extrinsic ``xyz`` angles); the radar reports its points in the true frame, ``p_true = R_e^T p_stated``. Detection (field of
   view, antenna gain, azimuth bins) is computed in the stated frame, which is exact for the geometry of the
   reported points and off by the (sub-degree) tilt for which points are seen. Doppler is a scalar per point
   and does not change with the frame.
