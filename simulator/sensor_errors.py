@@ -6,7 +6,7 @@ IMU (applied by :mod:`simulator.imu` to the true signal, before bias and noise):
   small-angle misalignment with zero diagonal (each axis tilted towards the others);
 - bias instability: a first-order Gauss-Markov bias ``b[k+1] = phi b[k] + sigma sqrt(1 - phi^2) w[k]``,
   ``phi = exp(-dt / tau)``, stationary with std ``sigma`` (the usual MEMS model of the flicker floor that
-  datasheets quote as "bias instability"; Allan deviation minimum about 0.664 sigma near ``tau``), added to
+  datasheets quote as "bias instability"; the twins set ``sigma`` to the datasheet value), added to
   the random-walk bias of :class:`simulator.params.ImuParams` (``gyro_bias_walk``, the rate random walk).
 
 Radar (applied by :mod:`simulator.simulate`):
@@ -15,10 +15,10 @@ Radar (applied by :mod:`simulator.simulate`):
   (positive: the stamp is late, as when a driver stamps a frame after processing and transfer);
 - mounting error: the true mount is the stated one (what ``/tf``, ``calib/`` or the profile says) moved by
   ``radar_mount_offset_m`` (base frame) and rotated by ``R_e`` (roll, pitch, yaw about the stated radar
-  frame's x, y, z axes, scipy's extrinsic ``xyz`` angles); the radar reports its points in the true frame, ``p_true = R_e^T p_stated``. Detection (field of
-  view, antenna gain, azimuth bins) is computed in the stated frame, which is exact for the geometry of the
-  reported points and off by the (sub-degree) tilt for which points are seen. Doppler is a scalar per point
-  and does not change with the frame.
+  frame's x, y, z axes, scipy's extrinsic ``xyz`` angles); the radar reports its points in the true
+  frame, ``p_true = R_e^T p_stated``. Detection (field of view, antenna gain, azimuth bins) is computed in
+  the stated frame, which is exact for the geometry of the reported points and off by the (sub-degree) tilt
+  for which points are seen. Doppler is a scalar per point and does not change with the frame.
 
 All zero (the default) leaves every measurement untouched, bit for bit. ``*_sigma`` fields draw a per-run
 value from the seeded generator on top of the fixed one.
