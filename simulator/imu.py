@@ -31,17 +31,21 @@ def initial_bias(p: ImuParams, rng: np.random.Generator) -> np.ndarray:
 
 def simulate_block(state: TrajectoryState, mount: Extrinsic, p: ImuParams, rate: float, bias0: np.ndarray,
                    rng: np.random.Generator, extra: tuple[np.ndarray, np.ndarray] | None = None,
-                   errors: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[ImuBlock, np.ndarray]:
+                   errors: tuple[np.ndarray, np.ndarray] | None = None, bias_extra: np.ndarray | None = None
+                   ) -> tuple[ImuBlock, np.ndarray]:
     """Measurements at ``state.t``; returns the block and the bias after its last sample.
 
     ``extra``: (specific force, angular rate) added in the IMU frame (e.g. heel-strike vibration);
     ``errors``: the gyro and accelerometer matrices of :func:`simulator.sensor_errors.error_matrices`.
-    Both are applied to the true signal, before bias and noise.
+    Both are applied to the true signal, before bias and noise. ``bias_extra``: (n, 6) bias added to the
+    random walk (the Gauss-Markov bias instability of :func:`simulator.sensor_errors.bias_instability`); the
+    returned bias carries the random walk only.
     """
     n = len(state.t)
     dt = 1.0 / rate
     steps = rng.normal(0.0, 1.0, (n, 6)) * np.sqrt(dt) * np.array([p.gyro_bias_walk] * 3 + [p.accel_bias_walk] * 3)
-    bias = bias0 + np.cumsum(steps, axis=0)
+    walk = bias0 + np.cumsum(steps, axis=0)
+    bias = walk if bias_extra is None else walk + bias_extra
     r_wi = state.rotation * mount.rotation
     _, _, acc = state.sensor(mount.t)
     g = np.array([0.0, 0.0, -p.gravity])
@@ -55,5 +59,5 @@ def simulate_block(state: TrajectoryState, mount: Extrinsic, p: ImuParams, rate:
     accel += bias[:, 3:]
     gyro += rng.normal(0.0, p.gyro_noise_density * np.sqrt(rate), (n, 3))
     accel += rng.normal(0.0, p.accel_noise_density * np.sqrt(rate), (n, 3))
-    last = bias[-1] if n else bias0
+    last = walk[-1] if n else bias0
     return ImuBlock(t=state.t, accel=accel, gyro=gyro, bias=bias), last

@@ -110,6 +110,9 @@ class SidecarWriter:
             "stats": {**self.stats(), **extra},
             "scatterers": len(sim.scatterers),
         }
+        drift = sim.drift_errors()
+        if drift is not None:  # the true sensor errors of a drifting world (simulator.sensor_errors)
+            meta["errors"] = drift
         if sim.handheld is not None:
             mount = sim.radar_mount
             meta["rates_hz"] = {"radar": sim.radar_rate, "imu": sim.imu_rate}

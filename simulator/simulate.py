@@ -21,13 +21,21 @@ from simulator import rig
 from simulator.handheld import HandheldRig, WalkingTrajectory, heel_strike
 from simulator.params import ImuParams, LidarParams, RadarParams, make_params
 from simulator.scatterers import Scatterers, build_scatterers
-from simulator.sensor_errors import SensorErrors, error_matrices
+from simulator.sensor_errors import (
+    MountError,
+    SensorErrors,
+    bias_instability,
+    error_matrices,
+    mount_error,
+    rotate_points,
+)
 from simulator.trajectory import Trajectory, TrajectoryState
 from simulator.world import World
 
 STREAM_TIMING, STREAM_RADAR, STREAM_LIDAR, STREAM_IMU, STREAM_IMU_BIAS, STREAM_LATENCY = 1, 2, 3, 4, 5, 6
 STREAM_SCATTERERS = 7
 STREAM_ERRORS, STREAM_VIBRATION, STREAM_RECORD_LATENCY = 8, 9, 10
+STREAM_BIAS_INSTABILITY, STREAM_MOUNT = 11, 12
 
 NS = 1_000_000_000
 
@@ -101,6 +109,10 @@ class Simulation:
         self.lidar_yaw = rig.yaw_of(rig.BASE_TO_LIDAR)
         self.error_mats = (error_matrices(self.errors, np.random.default_rng([self.seed, STREAM_ERRORS]))
                            if self.errors.active else None)
+        #: the true radar mount against the stated one (``[errors]`` radar_mount_*), None: exact
+        self.mount_error: MountError | None = (
+            mount_error(self.errors, np.random.default_rng([self.seed, STREAM_MOUNT]))
+            if self.errors.mount_active else None)
 
         rng = np.random.default_rng([self.seed, STREAM_TIMING])
         d = self.duration
@@ -111,6 +123,10 @@ class Simulation:
         sweep = 1 / rig.LIDAR_RATE_HZ
         self.lidar_ns = _ns(_grid(0.0, sweep, d - sweep + 1e-9))
         self.imu_ns = _ns(_grid(0.002, 1 / self.imu_rate, d))
+        #: Gauss-Markov bias instability at the IMU samples (``[errors]``), None: off
+        self._bias_gm = (bias_instability(self.errors, len(self.imu_ns), self.imu_rate,
+                                          np.random.default_rng([self.seed, STREAM_BIAS_INSTABILITY]))
+                         if self.errors.bias_instability_active else None)
         gt = _grid(0.08, 1 / rig.GT_RATE_HZ, d, gj)
         drop = rng.random(len(gt)) < 0.03
         drop[:1] = False
@@ -131,6 +147,20 @@ class Simulation:
             assert isinstance(self.traj, WalkingTrajectory)
             self.steps = self.traj.step_times()
 
+    def drift_errors(self) -> dict[str, object] | None:
+        """The drawn radar time offset and mounting error and the bias instability settings (for the sidecar),
+        None when none of them is set (the sidecar of such a world stays as it was)."""
+        e, me = self.errors, self.mount_error
+        if me is None and not e.bias_instability_active and not e.radar_time_offset_s:
+            return None
+        out: dict[str, object] = {"settings": e.model_dump(), "radar_time_offset_s": e.radar_time_offset_s}
+        if me is not None:
+            out["radar_mount_rpy_deg"] = [float(v) for v in me.rotation.as_euler("xyz", degrees=True)]
+            out["radar_mount_offset_m"] = [float(v) for v in me.offset]
+        if self.error_mats is not None:
+            out["gyro_matrix"], out["accel_matrix"] = (m.tolist() for m in self.error_mats)
+        return out
+
     def radar_stamp_ns(self, index: int) -> int:
         """Time of radar scan ``index`` (ns from the start) as ingest will see it: the record time when the
         header stamps are zero (handheld rig), the header stamp otherwise."""
@@ -148,14 +178,20 @@ class Simulation:
         if not len(idx):
             return []
         t = self.radar_ns[idx] / NS
-        st = self.traj.state(t)
-        pos, vel, _ = st.sensor(self.radar_mount.t)
+        off = self.errors.radar_time_offset_s  # the scan stamped t measured the scene at t - off
+        st = self.traj.state(np.maximum(t - off, 0.0) if off else t)
+        me = self.mount_error
+        pos, vel, _ = st.sensor(self.radar_mount.t + me.offset if me is not None else self.radar_mount.t)
         scans = [
             radar_model.simulate_scan(self.world.scene, self.scatterers, self.radar_p, int(i), float(t[j]), pos[j],
                                       float(st.yaw[j] + self.radar_yaw), vel[j],
                                       np.random.default_rng([self.seed, STREAM_RADAR, int(i)]))
             for j, i in enumerate(idx)
         ]
+        if me is not None:  # points as the truly mounted radar reports them
+            for j, scan in enumerate(scans):
+                pts, xyz = rotate_points(scan.points, scan.xyz_true, me)
+                scans[j] = replace(scan, points=pts, xyz_true=xyz)
         if self.handheld is not None:
             scans = [self._handheld_scan(s) for s in scans]
         return scans
@@ -210,7 +246,9 @@ class Simulation:
                                         np.random.default_rng([self.seed, STREAM_VIBRATION, k]))
                 block, bias = imu_model.simulate_block(truth, self.imu_mount, self.imu_p, self.imu_rate, bias,
                                                        np.random.default_rng([self.seed, STREAM_IMU, k]),
-                                                       extra=extra, errors=self.error_mats)
+                                                       extra=extra, errors=self.error_mats,
+                                                       bias_extra=None if self._bias_gm is None
+                                                       else self._bias_gm[ii])
                 gi = self._range(self.gt_ns, k)
                 gst = self.traj.state(self.gt_ns[gi] / NS)
                 gt = GtBlock(t=gst.t, position=gst.position, quaternion=gst.quaternion)
