@@ -99,13 +99,14 @@ def build_voxel_scatterers(grid: VoxelGrid, p: RadarParams, vp: VoxelScatterPara
     cells = np.argwhere(occ)
     shape = np.asarray(grid.shape)
     free_dir = np.zeros((len(cells), 3))  # sum of the directions to free face neighbours
+    surface = np.zeros(len(cells), bool)  # any free face neighbour (also when the directions cancel)
     for nb in _NEIGHBOURS:
         c = cells + nb
         ok = np.all((c >= 0) & (c < shape), axis=1)
         free = np.ones(len(cells), bool)
         free[ok] = ~occ[c[ok, 0], c[ok, 1], c[ok, 2]]
         free_dir += free[:, None] * nb
-    surface = _any_free_face(occ, cells)
+        surface |= free
     cells, free_dir = cells[surface], free_dir[surface]
     normal, variation = surface_normals(grid, cells, vp.normal_window)
     towards_free = (normal * free_dir).sum(1)
@@ -143,15 +144,3 @@ def build_voxel_scatterers(grid: VoxelGrid, p: RadarParams, vp: VoxelScatterPara
         tip_loss_db=p.tip_loss_db, pt_two_sided=np.concatenate([two_sided[which], np.zeros(n_e, bool)]),
     )
 
-
-def _any_free_face(occ: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Whether each cell has a free face neighbour (also when the free directions cancel, e.g. a 1-voxel wall)."""
-    shape = np.asarray(occ.shape)
-    out = np.zeros(len(cells), bool)
-    for nb in _NEIGHBOURS:
-        c = cells + nb
-        ok = np.all((c >= 0) & (c < shape), axis=1)
-        free = np.ones(len(cells), bool)
-        free[ok] = ~occ[c[ok, 0], c[ok, 1], c[ok, 2]]
-        out |= free
-    return out
