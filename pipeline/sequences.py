@@ -97,7 +97,7 @@ class SequenceInfo:
         return f"${recorded.ROOT_VAR}/{self.run or ''}"
 
     def simulated_path(self) -> Path:
-        return simulated.simulated_path(self.name, self.world, self.duration, self.seed, self.format)
+        return simulated.simulated_path(self.name, self.world, self.duration, self.seed, self.format, self.scene)
 
     def map_root_or_none(self) -> Path | None:
         """The folder holding this map sequence's scene (either layout), or None."""

@@ -136,8 +136,11 @@ def _check(fmt: str, duration: float) -> None:
         raise UserError(f"--duration {duration:g}: must be in (0, {MAX_DURATION_S:g}] seconds")
 
 
-def generate_sequence(seq: SimulatedSpec) -> Path:
-    """Write the registered simulated sequence ``seq`` to ``seq.simulated_path()`` unless it is there already."""
+def generate_sequence(seq: SimulatedSpec, world: World | None = None) -> Path:
+    """Write the registered simulated sequence ``seq`` to ``seq.simulated_path()`` unless it is there already.
+
+    ``world``: a world built by the caller (a ColoRadar twin, :func:`simulator.twin.twin_world`) instead of
+    the world file ``seq.world``."""
     from filelock import FileLock
     from rich.console import Console
 
@@ -147,7 +150,8 @@ def generate_sequence(seq: SimulatedSpec) -> Path:
     if path.exists():
         return path
     _check(seq.format, seq.duration)
-    world = load_world(seq.world or seq.name)
+    if world is None:
+        world = load_world(seq.world or seq.name)
     path.parent.mkdir(parents=True, exist_ok=True)
     with FileLock(str(path.parent / f"{path.name}.lock")):
         if path.exists():  # another process made it while we waited

@@ -109,7 +109,8 @@ def _visible_from(scene: Scene, starts: np.ndarray, targets: np.ndarray, nudge: 
     o = starts[ok] + nudge * d[ok] / r[:, None] if nudge else starts[ok]
     with np.errstate(invalid="ignore"):  # level rays: 0 slope * inf distance in the caster's height test
         hits = cast(scene, o, h, (d[ok, 2] / dxy[ok])[:, None], float(r.max()) + 1)
-    out[ok] = hits.range[:, 0] >= r - nudge - OCCLUSION_TOL - 2e-3 * r
+    slack = float(getattr(scene, "occlusion_slack", 0.0))  # voxel worlds: the depth of a surface voxel
+    out[ok] = hits.range[:, 0] >= r - nudge - OCCLUSION_TOL - 2e-3 * r - slack
     return out
 
 

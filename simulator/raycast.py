@@ -55,6 +55,9 @@ def _argmin(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def cast(scene: Scene, origins: np.ndarray, headings: np.ndarray, slopes: np.ndarray,
          max_range: float = np.inf) -> Hits:
     """Cast fans of rays. ``origins`` (G, 3), ``headings`` (G, 2) unit, ``slopes`` (G, E) or (E,)."""
+    own = getattr(scene, "cast_fan", None)
+    if own is not None:  # a scene with its own geometry (simulator.voxel_world.VoxelScene)
+        return own(origins, headings, slopes, max_range)
     o = np.asarray(origins, dtype=np.float64)
     h = np.asarray(headings, dtype=np.float64)
     G = len(o)

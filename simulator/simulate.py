@@ -20,6 +20,7 @@ from simulator import radar as radar_model
 from simulator import rig
 from simulator.handheld import HandheldRig, WalkingTrajectory, heel_strike
 from simulator.params import ImuParams, LidarParams, RadarParams, make_params
+from simulator.path_trajectory import PathTrajectory
 from simulator.scatterers import Scatterers, build_scatterers
 from simulator.sensor_errors import (
     MountError,
@@ -30,6 +31,7 @@ from simulator.sensor_errors import (
     rotate_points,
 )
 from simulator.trajectory import Trajectory, TrajectoryState
+from simulator.twin import TwinWorld
 from simulator.world import World
 
 STREAM_TIMING, STREAM_RADAR, STREAM_LIDAR, STREAM_IMU, STREAM_IMU_BIAS, STREAM_LATENCY = 1, 2, 3, 4, 5, 6
@@ -89,7 +91,10 @@ class Simulation:
         #: a handheld rig (simulator.handheld) instead of the ColoRadar one
         self.handheld: HandheldRig | None = (make_params(HandheldRig, world.spec.rig, f"{where} [rig]")
                                              if world.spec.rig else None)
-        self.traj: Trajectory
+        self.traj: Trajectory | PathTrajectory
+        if isinstance(world, TwinWorld) and self.duration > world.duration + 1e-9:
+            raise UserError(f"{where}: --duration {self.duration:g} s is longer than the recorded path "
+                            f"({world.duration:g} s); simulate at most {world.duration:g} s")
         if self.handheld is not None:
             try:
                 self.traj = WalkingTrajectory(world.spec.trajectory, self.duration, world.spec.floor, self.handheld)
@@ -100,12 +105,14 @@ class Simulation:
             self.radar_rate, self.imu_rate = self.handheld.radar_rate_hz, self.handheld.imu_rate_hz
             self.radar_yaw = float(np.radians(self.handheld.radar_yaw_deg))
         else:
-            self.traj = Trajectory(world.spec.trajectory, self.duration, floor=world.spec.floor)
+            self.traj = (world.trajectory if isinstance(world, TwinWorld)  # a recorded path in a voxel map
+                         else Trajectory(world.spec.trajectory, self.duration, floor=world.spec.floor))
             self.radar_mount, self.imu_mount = rig.BASE_TO_RADAR, rig.BASE_TO_IMU
             self.radar_rate, self.imu_rate = rig.RADAR_RATE_HZ, rig.IMU_RATE_HZ
             self.radar_yaw = rig.yaw_of(rig.BASE_TO_RADAR)
-        self.scatterers: Scatterers = build_scatterers(world.spec, self.radar_p,
-                                                       np.random.default_rng([self.seed, STREAM_SCATTERERS]))
+        scat_rng = np.random.default_rng([self.seed, STREAM_SCATTERERS])
+        self.scatterers: Scatterers = (world.scatterers(self.radar_p, scat_rng) if isinstance(world, TwinWorld)
+                                       else build_scatterers(world.spec, self.radar_p, scat_rng))
         self.lidar_yaw = rig.yaw_of(rig.BASE_TO_LIDAR)
         self.error_mats = (error_matrices(self.errors, np.random.default_rng([self.seed, STREAM_ERRORS]))
                            if self.errors.active else None)
