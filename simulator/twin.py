@@ -38,6 +38,24 @@ PAPER_DURATIONS_S: dict[str, float] = {
     "arpg_lab_run0": 119.0,
     "edgar_classroom_run3": 275.0,
 }
+#: The ColoRadar rig's sensor errors beyond white noise and bias random walk (simulator.sensor_errors), the
+#: same datasheet-class values as the drifting twins' ``[errors]`` tables (data/worlds/*_drift.toml): the
+#: ColoRadar IMU is a 3DM-GX5 class MEMS unit (simulator.params.ImuParams' defaults), its in-run bias
+#: stability 8 deg/h; the TI radar's frames are stamped on arrival (~30 ms late) and its extrinsic is known
+#: to about 1 deg and 2 cm per axis. Chosen from the datasheets before any twin ran; not tuned on results.
+COLORADAR_ERRORS: dict[str, float] = {
+    "gyro_scale_sigma": 2.0e-3,
+    "accel_scale_sigma": 3.0e-3,
+    "misalignment_sigma_rad": 1.0e-3,
+    "gyro_bias_instability": 3.9e-5,
+    "gyro_bias_tau_s": 100.0,
+    "accel_bias_instability": 4.0e-4,
+    "accel_bias_tau_s": 100.0,
+    "radar_time_offset_s": 0.03,
+    "radar_mount_sigma_deg": 1.0,
+    "radar_mount_offset_sigma_m": 0.02,
+}
+
 #: sample rate assumed for a scene without a known duration (the ground truth's ~15 Hz)
 DEFAULT_RATE_HZ = 15.0
 
@@ -51,6 +69,8 @@ class TwinParams(BaseModel):
     carve_radius: float = Field(0.45, ge=0, description="map voxels this close to the recorded path are removed, m")
     path: PathParams = Field(default_factory=PathParams, description="trajectory smoothing")
     scatter: VoxelScatterParams = Field(default_factory=VoxelScatterParams, description="radar scatterers")
+    errors: dict[str, float] = Field(default_factory=lambda: dict(COLORADAR_ERRORS),
+                                     description="simulator.sensor_errors.SensorErrors of the rig ({} for none)")
 
 
 @dataclass(frozen=True)
@@ -93,7 +113,8 @@ def twin_world(scene: str, map_points: np.ndarray, path: np.ndarray, map_file: P
     wp = [(float(x), float(y)) for x, y in path[[0, len(path) // 3, 2 * len(path) // 3], :2]]
     spec = WorldSpec(name=f"{scene}_twin", description=f"ColoRadar twin of {scene} (voxel map, recorded path)",
                      floor=sc.floor, ceiling=None, min_clearance=0.0,
-                     trajectory=TrajectorySpec(waypoints=wp))  # the loop is not used: the twin follows `traj`
+                     # the loop is not used: the twin follows `traj`
+                     trajectory=TrajectorySpec(waypoints=wp), errors=dict(p.errors))
     text = "# ColoRadar twin (simulator.twin): not a world file; what it was made from\n" + "".join(
         f"{k} = {json.dumps(v)}\n" for k, v in {
             "scene": scene, "map_file": str(map_file), "map_voxels": len(pts), "carved_voxels": int((~keep).sum()),

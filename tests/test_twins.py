@@ -16,7 +16,8 @@ from pipeline.errors import UserError
 from pipeline.sequences import load_registry
 from simulator.path_trajectory import PathTrajectory
 from simulator.raycast import cast
-from simulator.twin import PAPER_DURATIONS_S, carve_path, twin_world
+from simulator.sensor_errors import SensorErrors
+from simulator.twin import COLORADAR_ERRORS, PAPER_DURATIONS_S, TwinParams, carve_path, twin_world
 from simulator.voxel_scatterers import VoxelScatterParams, build_voxel_scatterers
 from simulator.voxel_world import VoxelGrid, cast_rays, cast_voxels_brute, grid_from_points, voxel_scene
 
@@ -131,6 +132,18 @@ def test_carving_removes_only_voxels_near_the_path() -> None:
     path = np.column_stack([np.linspace(0, 5, 50), np.zeros(50), np.zeros(50)])
     pts = np.array([[1.0, 0.2, 0.0], [2.0, 0.0, 0.44], [3.0, 0.5, 0.0], [2.0, 0.0, -1.0]])
     np.testing.assert_array_equal(carve_path(pts, path, 0.45), [False, False, True, True])
+
+
+def test_twins_carry_the_coloradar_error_model() -> None:
+    """The twins' rig has the datasheet error model (issue 17's terms); ``errors={}`` turns it off."""
+    path = np.column_stack([np.linspace(0, 5, 50), np.zeros(50), np.full(50, 0.5)])
+    wall = np.array([[x, 2.0, z] for x in np.arange(0, 5, 0.15) for z in np.arange(0, 1.5, 0.15)])
+    w = twin_world("x_run0", wall, path, duration=10.0)
+    e = SensorErrors(**w.spec.errors)
+    assert e.active and e.radar_time_offset_s == COLORADAR_ERRORS["radar_time_offset_s"] > 0
+    assert e.radar_mount_sigma_deg > 0 and e.gyro_bias_instability > 0
+    off = twin_world("x_run0", wall, path, duration=10.0, params=TwinParams(errors={}))
+    assert not SensorErrors(**off.spec.errors).active
 
 
 def test_registered_twins_match_the_coloradar_sequences() -> None:
