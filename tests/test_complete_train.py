@@ -117,8 +117,8 @@ def test_map_split_keeps_test_scenes_out(tmp_path: Path) -> None:
 
 
 def test_train_from_map_set(tmp_path: Path) -> None:
-    from pipeline.registry import load_stages
     from pipeline.config import load_workflow
+    from pipeline.registry import load_stages
     from stages.complete.checkpoint import load_checkpoint
     from stages.complete.train_cli import TrainRequest, run_training
 
@@ -149,7 +149,8 @@ def test_bad_maps_path_is_one_line_error(tmp_path: Path) -> None:
     r = _cli("train", "--maps", str(tmp_path / "nowhere"), "--out", str(tmp_path / "m.safetensors"))
     assert r.returncode == 2 and "nowhere: not a folder" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
-    r = _cli("train", "--maps", str(tmp_path), "--out", str(tmp_path / "m.safetensors"))
-    assert r.returncode == 2 and "no index.json" in r.stderr
-    r = _cli("train", "--maps", str(tmp_path), "--resume", "--out", str(tmp_path / "m.safetensors"))
-    assert r.returncode == 2 and "no training state" in r.stderr
+    with pytest.raises(UserError, match="no index"):
+        read_index(tmp_path)
+    (tmp_path / "index.json").write_text("{}")
+    with pytest.raises(UserError, match="no scene with radar"):
+        read_index(tmp_path)
