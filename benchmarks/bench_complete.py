@@ -194,9 +194,11 @@ def run(quick: bool = False) -> list[Result]:
     return results
 
 
-def _print_heldout(seqs: tuple[str, ...], runs_dir: Path | None, cached_only: bool) -> None:
+def _print_heldout(seqs: tuple[str, ...], runs_dir: Path | None, cached_only: bool,
+                   checkpoint: str | None = None) -> None:
     t0 = time.perf_counter()
-    rows = heldout_comparison(seqs, runs_dir, cached_only=cached_only)
+    overrides = {"complete": {"checkpoint": checkpoint}} if checkpoint else None
+    rows = heldout_comparison(seqs, runs_dir, overrides, cached_only=cached_only)
     cols = ("cd_l1", "cd_l2", "fscore_0.15", "ddist_p50", "ddist_p75", "ddist_p90", "ddist_p95", "cd_x", "cd_y",
             "cd_z", "n_pred", "n_gt")
     print("| seq | map | " + " | ".join(cols) + " |")
@@ -214,10 +216,11 @@ if __name__ == "__main__":
     ap.add_argument("--heldout", help="comma-separated held-out sequences: print only their map comparison")
     ap.add_argument("--runs-dir", type=Path, default=None)
     ap.add_argument("--cached-only", action="store_true", help="use the finished voxel/patches runs as they are")
+    ap.add_argument("--checkpoint", help="checkpoint for the held-out comparison (default: complete.checkpoint)")
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
     if args.heldout:
-        _print_heldout(tuple(args.heldout.split(",")), args.runs_dir, args.cached_only)
+        _print_heldout(tuple(args.heldout.split(",")), args.runs_dir, args.cached_only, args.checkpoint)
     else:
         for r in run(quick=args.quick):
             print(r)

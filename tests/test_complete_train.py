@@ -154,3 +154,27 @@ def test_bad_maps_path_is_one_line_error(tmp_path: Path) -> None:
     (tmp_path / "index.json").write_text("{}")
     with pytest.raises(UserError, match="no scene with radar"):
         read_index(tmp_path)
+
+
+def test_checkpoint_by_sequence_kind() -> None:
+    from stages.complete.stage import DEFAULT_CHECKPOINT, REAL_CHECKPOINT, resolve_checkpoint
+
+    assert resolve_checkpoint("auto", "simulated").resolve() == ROOT / DEFAULT_CHECKPOINT
+    for kind in ("coloradar", "source", "rmap"):
+        assert resolve_checkpoint("auto", kind).resolve() == ROOT / REAL_CHECKPOINT
+    assert resolve_checkpoint(str(ROOT / "x.pt"), "simulated") == ROOT / "x.pt"
+
+
+def test_shipped_real_checkpoint_loads() -> None:
+    from stages.complete.checkpoint import load_checkpoint
+    from stages.complete.stage import REAL_CHECKPOINT
+
+    path = ROOT / REAL_CHECKPOINT
+    if not path.exists():
+        pytest.skip(f"{REAL_CHECKPOINT} not shipped")
+    assert path.stat().st_size < 8 * 2**20
+    _, meta = load_checkpoint(path)
+    rec = meta.train
+    assert meta.config.n_input == 2048 and meta.config.n_output == 8192
+    # trained on train scenes only; the validation scenes are train scenes; no test scene was read
+    assert rec["train_scenes"] and not set(rec["train_scenes"] + rec["val_scenes"]) & set(rec["test_scenes_not_used"])
