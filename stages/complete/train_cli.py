@@ -239,7 +239,20 @@ def run_training(req: TrainRequest, console: Console) -> dict[str, Any]:
                         f"F {row['val_map_fscore_0.15']:.3f}")
             console.print(f"epoch {row['epoch']:>3}: loss {row['train_loss']:.5f}{val} ({row['seconds']:.0f} s)")
 
-        result = train(tr, te, cfg, device, advance=lambda n: prog.advance(task, n), on_epoch=on_epoch,
+        seen = {"n": 0, "t0": time.perf_counter()}
+        every = max(1, n_step // 10)
+
+        def advance(n: int) -> None:
+            prog.advance(task, n)
+            if console.is_terminal:
+                return
+            # a log file gets a line every tenth of an epoch instead of the bar
+            before, seen["n"] = seen["n"], seen["n"] + n
+            if before // every != seen["n"] // every:
+                console.print(f"  {seen['n'] % n_step or n_step}/{n_step} patches of this epoch, "
+                              f"{time.perf_counter() - seen['t0']:.0f} s since start")
+
+        result = train(tr, te, cfg, device, advance=advance, on_epoch=on_epoch,
                        record=record, state_path=state_path, resume=req.resume, validator=validator,
                        select=select, on_checkpoint=on_checkpoint)
     ckpt = save_checkpoint(req.out, result.model, result.meta, half=req.half)
