@@ -178,3 +178,23 @@ def test_shipped_real_checkpoint_loads() -> None:
     assert meta.config.n_input == 2048 and meta.config.n_output == 8192
     # trained on train scenes only; the validation scenes are train scenes; no test scene was read
     assert rec["train_scenes"] and not set(rec["train_scenes"] + rec["val_scenes"]) & set(rec["test_scenes_not_used"])
+
+
+def test_map_table_scores_input_and_completed(tmp_path: Path) -> None:
+    from stages.complete.checkpoint import CheckpointMeta, save_checkpoint
+    from stages.complete.map_table import evaluate_scenes, overall, render
+    from stages.complete.model import UpPoinTr
+    from stages.evaluate.map_metrics import map_metrics
+
+    maps = tmp_path / "maps"
+    _write_map_set(maps)
+    torch.manual_seed(0)
+    ckpt = save_checkpoint(tmp_path / "t.safetensors", UpPoinTr(TINY), CheckpointMeta(TINY, 2.0, {}))
+    rows = evaluate_scenes(maps, ["lab_run0"], ckpt, a=1.0)
+    radar = pq.read_table(maps / "lab_run0" / "radar.parquet").to_pandas().to_numpy()
+    gt = pq.read_table(maps / "lab_run0" / "lidar_filtered.parquet").to_pandas().to_numpy()
+    assert rows[0]["input"]["cd_l2"] == pytest.approx(map_metrics(radar, gt)["cd_l2"])
+    assert rows[0]["n_patches"] == 1 and rows[0]["completed"]["n_points"] > 0
+    assert overall(rows, "completed")["cd_l1"] == rows[0]["completed"]["cd_l1"]
+    text = render(rows, "t.safetensors", 1.0)
+    assert "| lab_run0 | ours completed |" in text and "Overall (paper, 21 scenes)" in text
