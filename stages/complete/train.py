@@ -381,7 +381,12 @@ def plot_curve(history: Sequence[dict[str, Any]], path: str | Path, title: str =
     ax.set_ylabel("training loss (normalised units)")
     ax.legend(fontsize=8)
     ax = axes[1]
-    if history and "val_cd_l1_m" in history[0]:
+    if history and "val_map_cd_l2" in history[0]:
+        ax.plot(epochs, [h["val_map_cd_l1"] for h in history], "b-", label="validation map CD-l1 (m)")
+        ax.plot(epochs, [h["val_map_cd_l2"] for h in history], "r-", label="validation map CD-l2 (m^2)")
+        ax.set_ylabel("map metric on the validation scenes")
+        ax.legend(fontsize=8)
+    elif history and "val_cd_l1_m" in history[0]:
         ax.plot(epochs, [h["val_cd_l1_m"] for h in history], "b-", label="held-out patch CD-l1 (m)")
         ax.set_ylabel("CD-l1 (m)")
         ax.legend(fontsize=8)
