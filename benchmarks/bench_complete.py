@@ -5,7 +5,9 @@ the held-out map comparison of RMap Table III on a simulated sequence.
   scipy's ``cKDTree`` on both directions (the reference), same inputs, same run;
 - FPS (8192 -> 2048): the torch loop against ``fpsample`` (reference);
 - inference s/patch on this machine's CPU for the shipped small checkpoint (else a random small model)
-  and, in full mode, the paper size; batch 1 and 8, best of ``repeat``;
+  and the paper size (random weights; quick mode: batch 1 only); batch 1 and 8, best of ``repeat``; each
+  as a ratio to a reference measured in the same run with the same torch threads: one float32
+  2048 x 2048 matrix product (``torch.mm``), so that the ratio follows the model, not the machine's load;
 - full mode: `complete` on the held-out sequence(s) with the shipped checkpoint, input radar map and
   completed map each scored against the lidar map (``stages.evaluate.map_metrics``).
 
@@ -81,17 +83,20 @@ def _inference_results(quick: bool) -> list[Result]:
     from stages.complete.synthetic import make_patches
 
     out = []
-    sizes = ["small"] if quick else ["small", "paper"]
-    for size in sizes:
+    a = torch.randn(2048, 2048, generator=torch.Generator().manual_seed(0))
+    torch.mm(a, a)
+    t_ref = best_time(partial(torch.mm, a, a), 5)
+    ref = f"torch.mm 2048x2048 float32 ({t_ref * 1e3:.1f} ms)"
+    x = torch.from_numpy(np.stack([p.radar for p in make_patches(8, seed=0)])).float()
+    for size in ("small", "paper"):
         model, _, what = _model(size)
-        x = torch.from_numpy(np.stack([p.radar for p in make_patches(8, seed=0)])).float()
-        for batch in (1, 8):
+        for batch in (1,) if quick and size == "paper" else (1, 8):
             xb = x[:batch]
             with torch.no_grad():
                 model(xb)  # warm-up
                 t = best_time(partial(model, xb), 2 if quick or size == "paper" else 3)
             out.append(Result(AREA, f"inference {size} batch {batch} (CPU, {torch.get_num_threads()} threads)",
-                              t / batch, "s/patch",
+                              t / batch, "s/patch", ref, t / batch / t_ref,
                               note=f"{what}, {count_parameters(model) / 1e6:.2f} M parameters, 2048 -> 8192"))
     return out
 
@@ -189,9 +194,11 @@ def run(quick: bool = False) -> list[Result]:
     return results
 
 
-def _print_heldout(seqs: tuple[str, ...], runs_dir: Path | None, cached_only: bool) -> None:
+def _print_heldout(seqs: tuple[str, ...], runs_dir: Path | None, cached_only: bool,
+                   checkpoint: str | None = None) -> None:
     t0 = time.perf_counter()
-    rows = heldout_comparison(seqs, runs_dir, cached_only=cached_only)
+    overrides = {"complete": {"checkpoint": checkpoint}} if checkpoint else None
+    rows = heldout_comparison(seqs, runs_dir, overrides, cached_only=cached_only)
     cols = ("cd_l1", "cd_l2", "fscore_0.15", "ddist_p50", "ddist_p75", "ddist_p90", "ddist_p95", "cd_x", "cd_y",
             "cd_z", "n_pred", "n_gt")
     print("| seq | map | " + " | ".join(cols) + " |")
@@ -209,10 +216,11 @@ if __name__ == "__main__":
     ap.add_argument("--heldout", help="comma-separated held-out sequences: print only their map comparison")
     ap.add_argument("--runs-dir", type=Path, default=None)
     ap.add_argument("--cached-only", action="store_true", help="use the finished voxel/patches runs as they are")
+    ap.add_argument("--checkpoint", help="checkpoint for the held-out comparison (default: complete.checkpoint)")
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
     if args.heldout:
-        _print_heldout(tuple(args.heldout.split(",")), args.runs_dir, args.cached_only)
+        _print_heldout(tuple(args.heldout.split(",")), args.runs_dir, args.cached_only, args.checkpoint)
     else:
         for r in run(quick=args.quick):
             print(r)

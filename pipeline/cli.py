@@ -334,7 +334,8 @@ def report(
 
 @app.command()
 def train(
-    seqs: Annotated[str, typer.Option("--seqs", "-s", help="sequences for the patch pairs: a,b,... or globs")],
+    seqs: Annotated[str | None, typer.Option("--seqs", "-s", help="sequences for the patch pairs: a,b,... or "
+                                             "globs (or --maps)")] = None,
     test_seqs: Annotated[str | None, typer.Option("--test-seqs", help="held-out sequences (not trained on; their "
                                                   "patch CD is logged per epoch); 'none' for no held-out set; "
                                                   "default: RMap's split of --seqs by run index")] = None,
@@ -350,7 +351,7 @@ def train(
     crop: Annotated[bool, typer.Option("--crop-target/--no-crop-target", help="cut lidar targets to the ball "
                                        "their radar patch spans (for maps with L/R well below 4)")] = True,
     seed: Annotated[int, typer.Option("--seed", help="seed of weights, batches, resampling, augmentation")] = 0,
-    device: Annotated[str, typer.Option("--device", help="cpu, cuda or auto")] = "cpu",
+    device: Annotated[str, typer.Option("--device", help="cpu, cuda or auto (cuda when present)")] = "auto",
     threads: Annotated[int | None, typer.Option("--threads", help="torch CPU threads")] = None,
     time_limit: Annotated[float | None, typer.Option("--time-limit", help="stop after the epoch that passes "
                                                      "this many seconds")] = None,
@@ -362,10 +363,25 @@ def train(
     set_: SetOpt = None,
     train_set: Annotated[list[str] | None, typer.Option("--train-set", help="override for the training sequences "
                                                         "only, e.g. patches.a=16 (the paper's a_train)")] = None,
+    maps: Annotated[Path | None, typer.Option("--maps", help="train on a published map set (index.json + "
+                                              "<scene>/{radar,lidar_filtered}.parquet): its train scenes, "
+                                              "validation scenes picked from them")] = None,
+    a_train: Annotated[float, typer.Option("--a-train", help="--maps: patch seed multiplier a for training")] = 16.0,
+    a_val: Annotated[float, typer.Option("--a-val", help="--maps: a for the validation scenes (a_test)")] = 4.0,
+    val_scenes: Annotated[str | None, typer.Option("--val-scenes", help="--maps: validation train scenes "
+                                                   "(default: one per environment)")] = None,
+    patches_per_epoch: Annotated[int | None, typer.Option("--patches-per-epoch", help="a seeded random subset "
+                                                          "of the training patches per epoch")] = None,
+    init: Annotated[str | None, typer.Option("--init", help="start from this checkpoint's weights "
+                                             "(fine-tuning)")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="continue the run saved in --state")] = False,
+    state: Annotated[Path | None, typer.Option("--state", help="resumable training state, written every epoch "
+                                               "(default <out>.state.pt)")] = None,
     runs_dir: RunsOpt = None,
     workflow: WorkflowOpt = "default",
 ) -> None:
-    """Train the completion network (RMap Sec. III-D) on the patches of --seqs; writes a checkpoint and a curve."""
+    """Train the completion network (RMap Sec. III-D) on the patches of --seqs or a map set (--maps); writes a
+    checkpoint, its curve and history every epoch."""
     from stages.complete.train_cli import TrainRequest, run_training
 
     registry = load_stages()
@@ -376,9 +392,10 @@ def train(
         out=out_path or runs / "models" / f"rmap_{size}.safetensors",
         train_kwargs=dict(size=size, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
                           lr_decay=lr_decay, decay_every=decay_every, loss=loss, augment=augment, seed=seed,
-                          crop_target=crop,
+                          crop_target=crop, patches_per_epoch=patches_per_epoch, init=init,
                           device=device, time_limit_s=time_limit),
-        threads=threads, half=half, cached_only=cached_only,
+        threads=threads, half=half, cached_only=cached_only, maps=maps, a_train=a_train, a_val=a_val,
+        val_scenes=val_scenes, resume=resume, state=state,
     )
     summary = run_training(req, console)
     for key in ("checkpoint", "curve", "history"):

@@ -23,14 +23,24 @@ from stages.complete.data import read_patches, voxel_downsample
 if TYPE_CHECKING:
     from pipeline.sequences import SequenceInfo
 
+#: trained on the simulator: the default for simulated sequences
 DEFAULT_CHECKPOINT = "data/models/rmap_small.safetensors"
+#: trained on the real ColoRadar maps (RMap's train scenes): the default for every other sequence kind
+REAL_CHECKPOINT = "data/models/rmap_coloradar_small.safetensors"
+
+
+def default_checkpoint(kind: str) -> str:
+    """The shipped checkpoint for a sequence kind: simulator-trained for simulated sequences, else real-trained."""
+    return DEFAULT_CHECKPOINT if kind == "simulated" else REAL_CHECKPOINT
 
 
 class CompleteParams(StageParams):
     """Parameters of the `complete` stage."""
 
-    checkpoint: str = Field(DEFAULT_CHECKPOINT, description="trained network (.safetensors or .pt); relative "
-                            "paths are looked up from the working directory, then the project root")
+    checkpoint: str = Field("auto", description="trained network (.safetensors or .pt); relative paths are "
+                            "looked up from the working directory, then the project root; auto = "
+                            f"{DEFAULT_CHECKPOINT} for simulated sequences, {REAL_CHECKPOINT} for real data "
+                            "(ColoRadar logs, map sequences)")
     device: Literal["cpu", "cuda", "auto"] = Field("cpu", description="where the network runs; auto = cuda "
                                                    "when torch sees a GPU")
     batch_size: int = Field(8, ge=1, description="patches per forward pass")
@@ -41,8 +51,10 @@ class CompleteParams(StageParams):
     threads: int | None = Field(None, ge=1, description="torch CPU threads (None = torch's default)")
 
 
-def resolve_checkpoint(path: str) -> Path:
-    """A checkpoint path as given, else relative to the project root."""
+def resolve_checkpoint(path: str, kind: str = "simulated") -> Path:
+    """A checkpoint path as given, else relative to the project root; ``auto`` by the sequence ``kind``."""
+    if path == "auto":
+        path = default_checkpoint(kind)
     p = Path(path).expanduser()
     if p.is_absolute() or p.exists():
         return p
@@ -78,7 +90,7 @@ class CompleteStage(Stage):
 
     def key_material(self, seq: SequenceInfo, params: StageParams) -> dict[str, Any]:
         assert isinstance(params, CompleteParams)
-        path = resolve_checkpoint(params.checkpoint)
+        path = resolve_checkpoint(params.checkpoint, seq.kind)
         return {"checkpoint_sha256": file_sha256(path) if path.exists() else "missing"}
 
     def resolution(self, ctx: StageContext) -> float:
@@ -104,7 +116,7 @@ class CompleteStage(Stage):
         if p.threads is not None:
             torch.set_num_threads(p.threads)
         device = resolve_device(p.device)
-        ckpt = resolve_checkpoint(p.checkpoint)
+        ckpt = resolve_checkpoint(p.checkpoint, ctx.seq.kind)
         model, meta = load_checkpoint(ckpt, device)
         patches = read_patches(ctx.input("patches", "patches.parquet"), ctx.seq.name)
         res = self.resolution(ctx)
@@ -125,7 +137,7 @@ class CompleteStage(Stage):
             "n_points": len(down),
             "resolution": res,
             "device": str(device),
-            "checkpoint": str(p.checkpoint),
+            "checkpoint": str(ckpt.relative_to(PROJECT_ROOT) if ckpt.is_relative_to(PROJECT_ROOT) else ckpt),
             "model_size": meta.train.get("config", {}).get("size", ""),
             "norm_scale_m": meta.norm_scale,
             "model_seconds": result.model_seconds,

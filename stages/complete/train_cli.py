@@ -1,4 +1,5 @@
-"""``pipeline train``: build the training set from `patches` runs, train, write checkpoint and curve.
+"""``pipeline train``: build the training set from `patches` runs or a published map set (``--maps``), train,
+write the checkpoint, its curve and history after every epoch, resumable (``--resume``).
 
 Kept apart from ``pipeline/cli.py`` so that the CLI imports torch only when this command runs. ``--set``
 overrides apply to every sequence; ``--train-set`` overrides only to the training sequences (e.g.
@@ -32,7 +33,7 @@ from stages.complete.data import Patch, read_patches, split_by_sequence
 class TrainRequest:
     """Everything ``pipeline train`` was asked to do."""
 
-    seqs: str
+    seqs: str | None
     test_seqs: str | None
     runs_dir: Path
     registry: dict[str, Stage]
@@ -45,6 +46,15 @@ class TrainRequest:
     half: bool = False
     #: read the finished `patches` runs as they are instead of bringing them up to date first
     cached_only: bool = False
+    #: a published map set (``<root>/index.json``, ``<root>/<scene>/{radar,lidar_filtered}.parquet``)
+    maps: Path | None = None
+    a_train: float = 16.0
+    a_val: float = 4.0
+    #: validation scenes (comma-separated train scenes); None = one per environment (maps.validation_scenes)
+    val_scenes: str | None = None
+    resume: bool = False
+    #: resumable training state; None = ``<out>.state.pt``
+    state: Path | None = None
 
 
 def _git_commit() -> str:
@@ -59,6 +69,8 @@ def _git_commit() -> str:
 def split(req: TrainRequest) -> tuple[list[SequenceInfo], list[SequenceInfo]]:
     """(train, held-out) sequences: ``--test-seqs`` if given ('none' for no held-out set), else RMap's rule."""
     registry = load_registry()
+    if req.seqs is None:
+        raise UserError("pipeline train: give --seqs (patches runs) or --maps (a map set)")
     pool = expand_sequences(req.seqs, registry)
     if req.test_seqs is not None:
         test = [] if req.test_seqs.lower() == "none" else expand_sequences(req.test_seqs, registry)
@@ -101,72 +113,191 @@ def collect(req: TrainRequest, seqs: list[SequenceInfo], overrides: Overrides, c
     return out
 
 
-def run_training(req: TrainRequest, console: Console) -> dict[str, Any]:
-    """The whole ``pipeline train`` command; returns a summary."""
+def _check_env(req: TrainRequest) -> None:
     for mod in ("torch", "safetensors"):
         if importlib.util.find_spec(mod) is None:
             raise UserError(f"`pipeline train` needs {mod}: pip install 'radar-pipeline[learn]'")
+    if req.out.suffix not in (".safetensors", ".pt"):
+        raise UserError(f"--out {req.out}: the checkpoint must end in .safetensors or .pt")
+
+
+def collect_maps(req: TrainRequest, console: Console) -> tuple[list[Patch], dict[str, Any], dict[str, Any]]:
+    """Training patches (a_train) of the map set's train scenes, the validation scenes (patches at a_val and
+    their ground truth) and the split record. Test scenes are not read."""
+    from stages.complete.maps import map_split, read_index, read_scene, scene_patches
+
+    assert req.maps is not None
+    scenes = read_index(req.maps)
+    val = None if req.val_scenes is None else [v.strip() for v in req.val_scenes.split(",") if v.strip()]
+    sp = map_split(scenes, val)
+    if not sp.train:
+        raise UserError(f"--maps {req.maps}: no train scene left after taking out the validation scenes")
+    seed = int(req.train_kwargs.get("seed", 0))
+    train: list[Patch] = []
+    counts: dict[str, int] = {}
+    for name in sp.train:
+        radar, gt = read_scene(req.maps, name)
+        got = scene_patches(radar, gt, name, req.a_train, seed)
+        counts[name] = len(got)
+        train.extend(got)
+    console.print(f"train scenes ({len(sp.train)}): {len(train)} patches at a = {req.a_train:g}")
+    val_data: dict[str, Any] = {}
+    for name in sp.val:
+        radar, gt = read_scene(req.maps, name)
+        val_data[name] = (scene_patches(radar, gt, name, req.a_val, seed), gt, radar)
+        counts[name] = len(val_data[name][0])
+    console.print(f"validation scenes ({len(sp.val)}): {', '.join(sp.val)}; "
+                  f"{sum(len(v[0]) for v in val_data.values())} patches at a = {req.a_val:g}")
+    record = {
+        "maps": str(req.maps), "train_scenes": sp.train, "val_scenes": sp.val,
+        "val_rule": "given" if val is not None else "per environment the train scene with the highest run number",
+        "test_scenes_not_used": sp.test, "a_train": req.a_train, "a_val": req.a_val, "patch_counts": counts,
+        "ground_truth": "lidar_filtered",
+        "gt_rebuilt": sorted(n for n in sp.train + sp.val if scenes[n].gt_source != "map"),
+    }
+    return train, val_data, record
+
+
+def run_training(req: TrainRequest, console: Console) -> dict[str, Any]:
+    """The whole ``pipeline train`` command; returns a summary."""
+    _check_env(req)
     import torch
 
     from stages.complete.checkpoint import save_checkpoint
     from stages.complete.infer import resolve_device
-    from stages.complete.train import TrainConfig, plot_curve, train
+    from stages.complete.train import Selection, TrainConfig, TrainResult, Validator, plot_curve, train
 
     try:
         cfg = TrainConfig(**req.train_kwargs)
         cfg.model_config()
     except (TypeError, ValueError) as exc:
         raise UserError(f"pipeline train: {exc}") from exc
-    if req.out.suffix not in (".safetensors", ".pt"):
-        raise UserError(f"--out {req.out}: the checkpoint must end in .safetensors or .pt")
     if req.threads is not None:
         torch.set_num_threads(req.threads)
     device = resolve_device(cfg.device)
-    train_seqs, test_seqs = split(req)
-    train_names = [s.name for s in train_seqs]
-    console.print(f"training sequences: {', '.join(train_names)}; "
-                  f"held out: {', '.join(s.name for s in test_seqs) or 'none'}")
-    provenance: dict[str, Any] = {}
-    tr = collect(req, train_seqs, merge_overrides(req.overrides, req.train_overrides), console, provenance)
-    te = collect(req, test_seqs, req.overrides, console, provenance) if test_seqs else []
+    state_path = req.state or req.out.with_name(req.out.name + ".state.pt")
+    if req.resume and not state_path.exists():
+        raise UserError(f"{state_path}: no training state to resume from; start without --resume")
+    record: dict[str, Any] = {}
+    validator: Validator | None = None
+    select: Selection | None = None
+    te: list[Patch] = []
+    if req.maps is not None:
+        tr, val_data, record = collect_maps(req, console)
+        validator = _map_validator(val_data, device)
+        select = Selection("val_map_cd_l2")
+        title = f"{cfg.size} model on {len(record['train_scenes'])} map scenes"
+    else:
+        train_seqs, test_seqs = split(req)
+        train_names = [s.name for s in train_seqs]
+        console.print(f"training sequences: {', '.join(train_names)}; "
+                      f"held out: {', '.join(s.name for s in test_seqs) or 'none'}")
+        provenance: dict[str, Any] = {}
+        tr = collect(req, train_seqs, merge_overrides(req.overrides, req.train_overrides), console, provenance)
+        te = collect(req, test_seqs, req.overrides, console, provenance) if test_seqs else []
+        record = {
+            "train_seqs": [s.name for s in train_seqs],
+            "test_seqs": [s.name for s in test_seqs],
+            "overrides": req.overrides,
+            "train_overrides": req.train_overrides,
+            "cached_only": req.cached_only,
+            "patches": provenance,
+        }
+        title = f"{cfg.size} model on {', '.join(train_names)}"
     if not tr:
-        raise UserError("the training sequences produced no patches with radar and lidar points")
-    record = {
-        "train_seqs": [s.name for s in train_seqs],
-        "test_seqs": [s.name for s in test_seqs],
-        "overrides": req.overrides,
-        "train_overrides": req.train_overrides,
-        "cached_only": req.cached_only,
-        "patches": provenance,
+        raise UserError("the training data produced no patches with radar and lidar points")
+    record.update({
         "command": shlex.join(["pipeline", *sys.argv[1:]]) if sys.argv and "train" in sys.argv else "",
         "git_commit": _git_commit(),
         "threads": torch.get_num_threads(),
-    }
+    })
+    curve_path = req.out.with_name(req.out.stem + "_curve.png")
+    hist_path = req.out.with_name(req.out.stem + "_history.json")
+    written: dict[str, Any] = {}
+
+    def on_checkpoint(res: TrainResult, improved: bool) -> None:
+        # the selected (or last) model whenever it changes, the history and the curve after every epoch
+        if select is None or improved or not req.out.exists():
+            save_checkpoint(req.out, res.model, res.meta, half=req.half)
+            written["epoch"] = res.epoch
+        _write_json(hist_path, {"meta": res.meta.train, "history": res.history})
+        plot_curve(res.history, curve_path, title=title)
+
     t0 = time.perf_counter()
+    n_step = min(len(tr), cfg.patches_per_epoch or len(tr))
     with Progress(TextColumn("[bold blue]train[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=True,
                   disable=not console.is_terminal) as prog:
-        task = prog.add_task(f"{cfg.size} model, {len(tr)} patches", total=cfg.epochs * len(tr))
+        task = prog.add_task(f"{cfg.size} model, {len(tr)} patches ({n_step} an epoch)", total=cfg.epochs * n_step)
+        if req.resume:
+            prog.update(task, completed=min(_epochs_done(state_path), cfg.epochs) * n_step)
 
         def on_epoch(row: dict[str, Any]) -> None:
             val = f", held-out CD-l1 {row['val_cd_l1_m']:.3f} m" if "val_cd_l1_m" in row else ""
+            if "val_map_cd_l2" in row:
+                val += (f", val map CD-l1 {row['val_map_cd_l1']:.3f} CD-l2 {row['val_map_cd_l2']:.3f} "
+                        f"F {row['val_map_fscore_0.15']:.3f}")
             console.print(f"epoch {row['epoch']:>3}: loss {row['train_loss']:.5f}{val} ({row['seconds']:.0f} s)")
 
-        result = train(tr, te, cfg, device, advance=lambda n: prog.advance(task, n), on_epoch=on_epoch,
-                       record=record)
+        seen = {"n": 0, "t0": time.perf_counter()}
+        every = max(1, n_step // 10)
+
+        def advance(n: int) -> None:
+            prog.advance(task, n)
+            if console.is_terminal:
+                return
+            # a log file gets a line every tenth of an epoch instead of the bar
+            before, seen["n"] = seen["n"], seen["n"] + n
+            if before // every != seen["n"] // every:
+                console.print(f"  {seen['n'] % n_step or n_step}/{n_step} patches of this epoch, "
+                              f"{time.perf_counter() - seen['t0']:.0f} s since start")
+
+        result = train(tr, te, cfg, device, advance=advance, on_epoch=on_epoch,
+                       record=record, state_path=state_path, resume=req.resume, validator=validator,
+                       select=select, on_checkpoint=on_checkpoint)
     ckpt = save_checkpoint(req.out, result.model, result.meta, half=req.half)
-    curve = plot_curve(result.history, req.out.with_name(req.out.stem + "_curve.png"),
-                       title=f"{cfg.size} model on {', '.join(train_names)}")
-    hist = req.out.with_name(req.out.stem + "_history.json")
-    hist.write_text(json.dumps({"meta": result.meta.train, "history": result.history}, indent=2) + "\n")
+    curve = plot_curve(result.history, curve_path, title=title)
+    _write_json(hist_path, {"meta": result.meta.train, "history": result.history})
     return {
         "checkpoint": str(ckpt),
         "checkpoint_mb": ckpt.stat().st_size / 2**20,
         "curve": str(curve),
-        "history": str(hist),
+        "history": str(hist_path),
+        "state": str(state_path),
         "n_train_patches": len(tr),
         "n_test_patches": len(te),
         "epochs": len(result.history),
+        "checkpoint_epoch": result.epoch,
+        "stopped_early": bool(result.meta.train.get("stopped_early")),
         "seconds": time.perf_counter() - t0,
         "final": result.history[-1] if result.history else {},
     }
+
+
+def _epochs_done(state_path: Path) -> int:
+    from stages.complete.train import load_state
+
+    return len(load_state(state_path)["history"])
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(obj, indent=2) + "\n")
+    tmp.replace(path)
+
+
+def _map_validator(val_data: dict[str, Any], device: Any) -> Any:
+    """Map-level validation: complete every validation scene, score it, average the scene rows."""
+    from stages.complete.checkpoint import CheckpointMeta
+    from stages.complete.map_eval import complete_map, mean_rows, score
+    from stages.complete.model import UpPoinTr
+
+    def validate(model: UpPoinTr, scale: float) -> dict[str, float]:
+        meta = CheckpointMeta(model.cfg, scale)
+        rows = []
+        for patches, gt, _ in val_data.values():
+            pred, _ = complete_map(model, meta, patches, device)
+            rows.append(score(pred, gt))
+        return {f"map_{k}": v for k, v in mean_rows(rows).items()}
+
+    return validate

@@ -1,0 +1,113 @@
+"""Published map sets as training and evaluation data for the completion network (RMap Sec. III-C, IV).
+
+A map set is a folder laid out like ``shared/data/coloradar_maps``: ``<root>/<scene>/radar.parquet`` and
+``<root>/<scene>/lidar_filtered.parquet`` (columns x, y, z, float64) and ``<root>/index.json`` giving each
+scene's ``split`` (``test`` = RMap Table III, ``train`` = the rest) and ``environment``. Ground truth is
+``lidar_filtered`` (the shared README: it reproduces the paper's tables). :func:`read_scene` is the one
+place that reads a scene, so that it can be swapped for the project's map-sequence source layer.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import UserError
+from stages.complete.data import F64, Patch
+from stages.patches.fps_patches import make_patches
+
+
+@dataclass(frozen=True)
+class SceneInfo:
+    name: str
+    environment: str
+    split: str
+    #: how the ground-truth map was made ("map" or the stand-in rebuilt from published patches)
+    gt_source: str
+
+
+def read_index(root: str | Path) -> dict[str, SceneInfo]:
+    """The scenes of a map set whose files are present, by name (sorted)."""
+    root = Path(root)
+    index = root / "index.json"
+    if not root.is_dir():
+        raise UserError(f"--maps {root}: not a folder; point it at a map set such as ../shared/data/coloradar_maps")
+    if not index.is_file():
+        raise UserError(f"--maps {root}: no index.json (scene -> split and environment); is this a map set?")
+    try:
+        raw = json.loads(index.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise UserError(f"{index}: unreadable index ({exc}); restore it from the map set") from exc
+    out: dict[str, SceneInfo] = {}
+    for name, v in sorted(raw.items()):
+        if not isinstance(v, dict) or "split" not in v or "environment" not in v:
+            raise UserError(f"{index}: scene {name!r} has no split or environment")
+        if (root / name / "radar.parquet").is_file() and (root / name / "lidar_filtered.parquet").is_file():
+            out[name] = SceneInfo(name, str(v["environment"]), str(v["split"]),
+                                  str(v.get("lidar_filtered", {}).get("source", "map")))
+    if not out:
+        raise UserError(f"--maps {root}: no scene with radar.parquet and lidar_filtered.parquet")
+    return out
+
+
+def validation_scenes(scenes: dict[str, SceneInfo]) -> list[str]:
+    """The validation part of the train scenes, fixed before training: in every environment the train
+    scene with the highest run number (never a test scene)."""
+    by_env: dict[str, list[tuple[int, str]]] = {}
+    for s in scenes.values():
+        if s.split == "train":
+            run = s.name.rsplit("_run", 1)[-1]
+            by_env.setdefault(s.environment, []).append((int(run) if run.isdigit() else -1, s.name))
+    return sorted(max(v)[1] for v in by_env.values())
+
+
+@dataclass(frozen=True)
+class MapSplit:
+    """Scenes for training, for validation (a part of RMap's train scenes) and RMap's test scenes."""
+
+    train: list[str]
+    val: list[str]
+    test: list[str]
+
+
+def map_split(scenes: dict[str, SceneInfo], val: Sequence[str] | None = None) -> MapSplit:
+    """RMap's split with a validation part taken out of the train scenes (default :func:`validation_scenes`)."""
+    val = list(val) if val is not None else validation_scenes(scenes)
+    bad = [v for v in val if v not in scenes or scenes[v].split != "train"]
+    if bad:
+        raise UserError(f"validation scenes {bad}: not train scenes of the map set (test scenes are never used "
+                        "for choices)")
+    train = [s.name for s in scenes.values() if s.split == "train" and s.name not in val]
+    test = [s.name for s in scenes.values() if s.split == "test"]
+    return MapSplit(train, sorted(val), test)
+
+
+def _read_xyz(path: Path) -> F64:
+    import pyarrow.parquet as pq
+
+    try:
+        table = pq.read_table(path, columns=["x", "y", "z"])
+    except Exception as exc:  # pyarrow raises several types for a bad file
+        raise UserError(f"{path}: cannot read x, y, z ({type(exc).__name__}: {str(exc).splitlines()[0]})") from exc
+    pts = np.stack([table.column(c).to_numpy().astype(np.float64) for c in ("x", "y", "z")], axis=1)
+    if len(pts) == 0:
+        raise UserError(f"{path}: the map is empty")
+    return pts
+
+
+def read_scene(root: str | Path, scene: str) -> tuple[F64, F64]:
+    """(radar map, ground-truth lidar_filtered map) of one scene, float64 ``(N, 3)``."""
+    d = Path(root) / scene
+    return _read_xyz(d / "radar.parquet"), _read_xyz(d / "lidar_filtered.parquet")
+
+
+def scene_patches(radar: F64, lidar: F64, scene: str, a: float, seed: int = 0) -> list[Patch]:
+    """Algorithm 1's patch pairs of one scene (the `patches` stage's defaults: 2048 radar, 8192 lidar points)."""
+    res = make_patches(radar, lidar, a=a, seed=seed)
+    rad = radar[res.radar_inliers]
+    return [Patch(scene, i, res.seeds[i], rad[res.radar_idx[i]], lidar[res.lidar_idx[i]])
+            for i in range(len(res.seeds))]
