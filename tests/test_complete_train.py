@@ -100,7 +100,8 @@ def _write_map_set(root: Path) -> None:
         lidar = scene_surface(rng, 6000, radius=3.0)
         radar = lidar[rng.choice(len(lidar), 1500, replace=False)] + rng.normal(0, 0.05, (1500, 3))
         (root / name).mkdir(parents=True)
-        for kind, pts in (("radar", radar), ("lidar_filtered", lidar)):
+        for kind, pts in (("radar", radar), ("lidar_filtered", lidar), ("poses", radar[:5]),
+                          ("trajectory", radar[:20])):
             pq.write_table(pa.table({c: pts[:, j] for j, c in enumerate("xyz")}), root / name / f"{kind}.parquet")
         index[name] = {"environment": env, "split": split, "lidar_filtered": {"source": "map"}}
     (root / "index.json").write_text(json.dumps(index))

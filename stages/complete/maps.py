@@ -14,8 +14,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from pipeline.errors import UserError
 from stages.complete.data import F64, Patch
 from stages.patches.fps_patches import make_patches
@@ -86,23 +84,16 @@ def map_split(scenes: dict[str, SceneInfo], val: Sequence[str] | None = None) ->
     return MapSplit(train, sorted(val), test)
 
 
-def _read_xyz(path: Path) -> F64:
-    import pyarrow.parquet as pq
-
-    try:
-        table = pq.read_table(path, columns=["x", "y", "z"])
-    except Exception as exc:  # pyarrow raises several types for a bad file
-        raise UserError(f"{path}: cannot read x, y, z ({type(exc).__name__}: {str(exc).splitlines()[0]})") from exc
-    pts = np.stack([table.column(c).to_numpy().astype(np.float64) for c in ("x", "y", "z")], axis=1)
-    if len(pts) == 0:
-        raise UserError(f"{path}: the map is empty")
-    return pts
-
-
 def read_scene(root: str | Path, scene: str) -> tuple[F64, F64]:
-    """(radar map, ground-truth lidar_filtered map) of one scene, float64 ``(N, 3)``."""
-    d = Path(root) / scene
-    return _read_xyz(d / "radar.parquet"), _read_xyz(d / "lidar_filtered.parquet")
+    """(radar map, ground-truth lidar_filtered map) of one scene, float64 ``(N, 3)``, in either layout.
+
+    The map-set reader of the sources layer (:func:`sources.mapset.read_map_set`): the values as stored, and
+    every problem a one-line error naming the file.
+    """
+    from sources.mapset import read_map_set
+
+    m = read_map_set(Path(root), scene)
+    return m.radar, m.lidar_filtered
 
 
 def scene_patches(radar: F64, lidar: F64, scene: str, a: float, seed: int = 0) -> list[Patch]:

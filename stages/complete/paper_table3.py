@@ -1,64 +1,29 @@
-"""RMap Table III as published (input radar map and RMap, per test scene and Overall), for side-by-side tables.
+"""RMap Table III as published, in the row form of the Table III script (``map_table``).
 
-Values are the paper's, in metres: (CD-l1, CD-l2, F-score, D-Dist 50, 75, 90, 95). One erratum applied
-(the shared maps README): outdoors_run4's input F-score is printed "0.0123" and is 0.123.
+A view of :data:`stages.evaluate.rmap_paper.TABLE_III` (the one transcription of the paper's tables, with
+its errata: outdoors_run4's input F-score printed "0.0123" is 0.123): per scene (input row, RMap row) of
+(CD-l1, CD-l2, F-score, D-Dist 50, 75, 90, 95), in metres.
 """
 
 from __future__ import annotations
 
+from stages.evaluate.rmap_paper import MAP_KEYS, TABLE_III, TABLE_III_OVERALL, Scores
+
 Row = tuple[float, float, float, float, float, float, float]
 
+KEYS = MAP_KEYS
+
+
+def _row(s: Scores) -> Row:
+    m = s.metrics()
+    return tuple(m[k] for k in KEYS)  # type: ignore[return-value]
+
+
 #: scene -> (input row, RMap row)
-TABLE3: dict[str, tuple[Row, Row]] = {
-    "arpg_lab_run0": ((0.329, 0.651, 0.297, 0.212, 0.367, 0.618, 0.808),
-        (0.182, 0.223, 0.674, 0.072, 0.095, 0.184, 0.360)),
-    "arpg_lab_run1": ((0.347, 0.639, 0.247, 0.260, 0.424, 0.618, 0.750),
-        (0.210, 0.296, 0.618, 0.074, 0.094, 0.143, 0.231)),
-    "aspen_run0": ((0.500, 1.184, 0.187, 0.335, 0.474, 0.687, 0.862),
-        (0.218, 0.269, 0.575, 0.080, 0.112, 0.210, 0.321)),
-    "aspen_run1": ((0.500, 1.212, 0.217, 0.300, 0.450, 0.618, 0.735),
-        (0.299, 0.594, 0.490, 0.078, 0.105, 0.177, 0.256)),
-    "aspen_run2": ((0.641, 1.931, 0.202, 0.300, 0.474, 0.779, 1.061),
-        (0.231, 0.415, 0.577, 0.038, 0.070, 0.164, 0.268)),
-    "aspen_run3": ((0.540, 1.514, 0.241, 0.212, 0.367, 0.636, 0.900),
-        (0.198, 0.205, 0.586, 0.076, 0.085, 0.111, 0.161)),
-    "aspen_run4": ((0.556, 1.546, 0.204, 0.300, 0.474, 0.687, 0.849),
-        (0.178, 0.207, 0.671, 0.066, 0.082, 0.122, 0.171)),
-    "aspen_run5": ((0.511, 1.315, 0.210, 0.260, 0.450, 0.636, 0.875),
-        (0.192, 0.181, 0.620, 0.084, 0.101, 0.172, 0.267)),
-    "ec_hallways_run0": ((0.426, 0.717, 0.143, 0.367, 0.618, 0.900, 1.142),
-        (0.233, 0.312, 0.581, 0.098, 0.125, 0.237, 0.418)),
-    "ec_hallways_run1": ((0.493, 0.992, 0.127, 0.367, 0.618, 0.925, 1.219),
-        (0.256, 0.353, 0.481, 0.082, 0.144, 0.276, 0.435)),
-    "edgar_army_run0": ((0.370, 0.712, 0.222, 0.300, 0.450, 0.618, 0.765),
-        (0.201, 0.297, 0.627, 0.077, 0.095, 0.160, 0.255)),
-    "edgar_army_run1": ((0.374, 0.720, 0.245, 0.260, 0.450, 0.618, 0.779),
-        (0.217, 0.305, 0.604, 0.070, 0.099, 0.195, 0.333)),
-    "edgar_army_run2": ((0.386, 0.704, 0.238, 0.260, 0.450, 0.687, 0.912),
-        (0.174, 0.163, 0.621, 0.072, 0.088, 0.149, 0.248)),
-    "edgar_classroom_run0": ((0.388, 0.786, 0.229, 0.300, 0.474, 0.704, 0.925),
-        (0.167, 0.124, 0.678, 0.093, 0.107, 0.159, 0.251)),
-    "edgar_classroom_run1": ((0.379, 0.806, 0.225, 0.300, 0.450, 0.687, 0.960),
-        (0.176, 0.132, 0.641, 0.091, 0.120, 0.189, 0.291)),
-    "edgar_classroom_run2": ((0.332, 0.609, 0.279, 0.212, 0.367, 0.636, 0.887),
-        (0.154, 0.148, 0.711, 0.062, 0.086, 0.150, 0.249)),
-    "outdoors_run0": ((0.540, 1.136, 0.130, 0.424, 0.765, 1.255, 1.650),
-        (0.235, 0.311, 0.550, 0.091, 0.113, 0.216, 0.394)),
-    "outdoors_run1": ((0.640, 1.527, 0.097, 0.541, 1.006, 1.602, 2.012),
-        (0.278, 0.388, 0.479, 0.093, 0.141, 0.346, 0.659)),
-    "outdoors_run2": ((0.573, 1.194, 0.108, 0.474, 0.875, 1.391, 1.781),
-        (0.191, 0.225, 0.608, 0.059, 0.112, 0.203, 0.308)),
-    "outdoors_run3": ((0.635, 1.396, 0.093, 0.541, 0.972, 1.537, 1.909),
-        (0.261, 0.365, 0.481, 0.076, 0.142, 0.298, 0.622)),
-    "outdoors_run4": ((0.555, 1.075, 0.123, 0.450, 0.808, 1.209, 1.507),
-        (0.239, 0.344, 0.509, 0.069, 0.122, 0.232, 0.366)),
-}
+TABLE3: dict[str, tuple[Row, Row]] = {scene: (_row(r.input), _row(r.rmap)) for scene, r in TABLE_III.items()}
 
 #: the paper's printed Overall row (mean over all 21 scenes)
-OVERALL: tuple[Row, Row] = ((0.477, 1.065, 0.193, 0.335, 0.541, 0.875, 1.181),
-                            (0.214, 0.279, 0.590, 0.080, 0.107, 0.197, 0.330))
-
-KEYS = ("cd_l1", "cd_l2", "fscore_0.15", "ddist_p50", "ddist_p75", "ddist_p90", "ddist_p95")
+OVERALL: tuple[Row, Row] = (_row(TABLE_III_OVERALL.input), _row(TABLE_III_OVERALL.rmap))
 
 
 def as_dict(row: Row) -> dict[str, float]:
