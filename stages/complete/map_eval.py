@@ -15,6 +15,7 @@ from stages.complete.data import F64, Patch, voxel_downsample
 from stages.complete.infer import complete_patches
 from stages.complete.model import UpPoinTr
 from stages.evaluate.map_metrics import map_metrics
+from stages.evaluate.rmap_paper import MAP_KEYS
 
 
 def complete_map(model: UpPoinTr, meta: CheckpointMeta, patches: Sequence[Patch], device: torch.device,
@@ -27,13 +28,10 @@ def complete_map(model: UpPoinTr, meta: CheckpointMeta, patches: Sequence[Patch]
     return down, res.seconds_per_patch
 
 
-METRICS = ("cd_l1", "cd_l2", "fscore_0.15", "ddist_p50", "ddist_p75", "ddist_p90", "ddist_p95")
-
-
 def score(pred: F64, gt: F64) -> dict[str, float]:
     """The Table III metrics of a map against ground truth (``stages.evaluate.map_metrics``)."""
     m = map_metrics(pred, gt)
-    return {k: float(m[k]) for k in METRICS} | {"n_points": float(len(pred))}
+    return {k: float(m[k]) for k in MAP_KEYS} | {"n_points": float(len(pred))}
 
 
 def mean_rows(rows: Sequence[dict[str, float]]) -> dict[str, float]:
