@@ -8,6 +8,13 @@ weight with the variance (eq. 28, 30), without it (mean only), and the FastSLAM 
 field, each averaged over several test scans.
 
     python -m stages.slam.likelihood_profile [RUN_DIR ...] [--scans 8] [--out table.md]
+        [--free-weight W ...] [--free-clearance C ...] [--refine]
+
+``--free-weight`` / ``--free-clearance`` add rows for the Hilbert weight with the free samples' log terms
+weighted by W, or with no free sample within C metres of the endpoint (issue 17's levers inside the
+paper's model). ``--refine`` adds the refinement table: where Gauss-Newton on each objective of
+:mod:`pose_refinement` takes the test scans from the true pose and from offsets of it, with a prior too
+wide to hold them (the map's own optimum; a good objective stays near zero).
 
 Without RUN_DIR it profiles the synthetic corridor (``synthetic.py``); a run folder needs ``ingest/``
 and ``filter/`` (ground-truth poses at the radar scan times).
@@ -17,7 +24,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +35,8 @@ from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, sample_beams, to_world
 from stages.slam.grid_map import GridParticleMaps, likelihood_field_log_likelihood, make_grid_spec
 from stages.slam.methods import SlamConfig, domain_from_trajectory
-from stages.slam.rbpf import HilbertParticleMaps, compose, hilbert_log_likelihood
+from stages.slam.pose_refinement import PoseRefinement, refine
+from stages.slam.rbpf import HilbertParticleMaps, HilbertWeighting, compose, hilbert_log_likelihood
 
 F64 = npt.NDArray[np.floating[Any]]
 #: body-frame offsets profiled: metres forward / lateral, degrees of yaw
@@ -64,11 +72,13 @@ def offset_poses(pose: F64, axis: str) -> tuple[F64, F64]:
 
 
 def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: SlamConfig,
-             padding: float = 10.0) -> list[Profile]:
+             padding: float = 10.0, extra: dict[str, tuple[HilbertWeighting, Sequence[BeamSamples]]] | None = None,
+             ) -> list[Profile]:
     """Profiles of the Hilbert weight (with and without variance) and the grid likelihood field.
 
     ``gt (T, 3)`` are the true poses of ``scans``; every scan before a test scan builds the map (one
-    map per model, grown incrementally), the test scan is only scored.
+    map per model, grown incrementally), the test scan is only scored. ``extra``: more Hilbert rows, each
+    a weighting and its own beam samples (maps built from them).
     """
     half, centre = domain_from_trajectory(gt[:, :2], padding)
     basis = hm.make_basis(half, centre, cfg.n_basis, cfg.basis_kind)
@@ -76,29 +86,39 @@ def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: Sl
     hil = HilbertParticleMaps(basis, 1, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, w,
                               form="covariance")
     grid = GridParticleMaps(make_grid_spec(centre, half, cfg.grid_resolution), 1, cfg.grid)
-    models = {"hilbert_gp (variance, ET)": w, "hilbert_gp (mean only)": cfg.weighting("rich_slam_mean_only"),
-              "fastslam_grid": None}
+    models: dict[str, tuple[HilbertWeighting | None, Sequence[BeamSamples], HilbertParticleMaps | None]] = {
+        "hilbert_gp (variance, ET)": (w, scans, hil),
+        "hilbert_gp (mean only)": (cfg.weighting("rich_slam_mean_only"), scans, hil),
+        "fastslam_grid": (None, scans, None)}
+    for name, (wx, sx) in (extra or {}).items():
+        mx: HilbertParticleMaps | None = hil if sx is scans else HilbertParticleMaps(
+            basis, 1, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, wx, form="covariance")
+        models[name] = (wx, sx, mx)
+    own = {id(m): (m, sx) for _, sx, m in models.values() if m is not None}
     sums: dict[tuple[str, str], F64] = {}
     done = 0
     for k in sorted(test):
         for i in range(done, k):
+            for mx, sx in own.values():
+                if sx[i].n:
+                    mx.update(gt[i : i + 1], sx[i])
             if scans[i].n:
-                hil.update(gt[i : i + 1], scans[i])
                 grid.update(gt[i : i + 1], scans[i])
         done = k
         if scans[k].n == 0:
             continue
-        theta, cov = hil.map_of(0)
+        posts = {key: mx.map_of(0) for key, (mx, _) in own.items()}
         for axis in ("forward", "lateral", "yaw"):
             poses, _ = offset_poses(gt[k], axis)
             n = len(poses)
-            for name, weighting in models.items():
-                if weighting is None:
+            for name, (weighting, sx, mx) in models.items():
+                if weighting is None or mx is None:
                     ll = likelihood_field_log_likelihood(np.repeat(grid.grids, n, axis=0), grid.spec,
                                                          to_world(poses, scans[k].endpoints), grid.model)
                 else:
+                    theta, cov = posts[id(mx)]
                     ll = hilbert_log_likelihood(basis, np.repeat(theta[None], n, 0), np.repeat(cov[None], n, 0),
-                                                poses, scans[k], weighting)
+                                                poses, sx[k], weighting)
                 zero = ll[n // 2]
                 sums[(name, axis)] = sums.get((name, axis), np.zeros(n)) + (ll - zero)
     count = sum(1 for k in test if scans[k].n)
@@ -106,15 +126,55 @@ def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: Sl
             for (name, axis), s in sums.items()]
 
 
-def synthetic_case(n_scans: int = 300, seed: int = 1) -> tuple[F64, list[BeamSamples]]:
+def refinement_bias(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: SlamConfig,
+                    padding: float = 10.0, iterations: int = 8) -> list[str]:
+    """Markdown rows: mean position / yaw error after Gauss-Newton from the true pose and from offsets.
+
+    The map is built along ground truth from the scans before each test scan, the prior is 1 m / 0.3 rad
+    (too wide to hold the start): where the refinement ends is where the objective peaks on that map.
+    """
+    half, centre = domain_from_trajectory(gt[:, :2], padding)
+    basis = hm.make_basis(half, centre, cfg.n_basis, cfg.basis_kind)
+    hil = HilbertParticleMaps(basis, 1, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
+                              cfg.weighting("rich_slam"), form="covariance")
+    starts = {"true pose": (0.0, 0.0, 0.0), "lateral +-0.2 m": (0.0, 0.2, 0.0), "yaw +-3 deg": (0.0, 0.0, 3.0)}
+    wide = np.array([1.0, 1.0, 0.09])
+    errs: dict[tuple[str, str], list[F64]] = {}
+    done = 0
+    for k in sorted(test):
+        for i in range(done, k):
+            if scans[i].n:
+                hil.update(gt[i : i + 1], scans[i])
+        done = k
+        if scans[k].n == 0:
+            continue
+        for label, (fx, ly, yaw) in starts.items():
+            d = np.array([[fx, ly, np.radians(yaw)], [-fx, -ly, -np.radians(yaw)]])
+            x0 = compose(np.repeat(gt[k : k + 1], 2, 0), d)
+            for objective in ("logistic", "gaussian"):
+                st = PoseRefinement(iterations, 0.25, 0.05, objective=objective,
+                                    noise_variance=cfg.noise_variance)
+                mode, _ = refine(basis, np.repeat(hil.theta, 2, 0), x0, wide, scans[k], st, cfg.likelihood_exponent)
+                e = mode - gt[k]
+                errs.setdefault((objective, label), []).append(
+                    np.column_stack([np.hypot(e[:, 0], e[:, 1]), np.degrees(np.abs(np.angle(np.exp(1j * e[:, 2]))))]))
+    rows = []
+    for (objective, label), v in errs.items():
+        a = np.concatenate(v)
+        rows.append(f"| {objective} | {label} | {a[:, 0].mean():.3f} | {a[:, 1].mean():.2f} |")
+    return rows
+
+
+def synthetic_case(n_scans: int = 300, seed: int = 1, free_clearance: float = 0.0) -> tuple[F64, list[BeamSamples]]:
     """Ground truth and beam samples of the synthetic corridor (25 beams per scan)."""
     from stages.slam.synthetic import make_run
 
     run = make_run(n_scans, np.random.default_rng(seed))
-    return run.groundtruth, [sample_beams(p, np.zeros(2), 1.0, 5.0) for p in run.scans]
+    return run.groundtruth, [sample_beams(p, np.zeros(2), 1.0, 5.0, 0.0, free_clearance) for p in run.scans]
 
 
-def run_folder_case(run_dir: Path, max_range: float = 5.0, ray_step: float = 1.0) -> tuple[F64, list[BeamSamples]]:
+def run_folder_case(run_dir: Path, max_range: float = 5.0, ray_step: float = 1.0, free_clearance: float = 0.0,
+                    ) -> tuple[F64, list[BeamSamples]]:
     """Ground-truth poses at the radar scan times and the filtered scans' beam samples of a run folder."""
     from stages.evaluate.world import gt_interpolator
     from stages.slam.stage import SlamParams, beam_samples_by_scan
@@ -130,7 +190,8 @@ def run_folder_case(run_dir: Path, max_range: float = 5.0, ray_step: float = 1.0
     ids, t_scan = ids[ok], t[first][ok]
     pos, rot = interp.at(t_scan)
     poses = np.column_stack([pos[:, :2], np.arctan2(rot[:, 1, 0], rot[:, 0, 0])])
-    return poses, beam_samples_by_scan(scan, xyz, ids, calib, SlamParams(max_range=max_range, ray_step=ray_step))
+    return poses, beam_samples_by_scan(scan, xyz, ids, calib, SlamParams(max_range=max_range, ray_step=ray_step,
+                                                                             free_clearance=free_clearance))
 
 
 def table(rows: Sequence[tuple[str, Profile]]) -> list[str]:
@@ -148,19 +209,35 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("runs", nargs="*", type=Path, help="run folders <runs>/<seq> with ingest/ and filter/")
     ap.add_argument("--scans", type=int, default=8, help="test scans per data set (evenly spaced in its second half)")
     ap.add_argument("--out", type=Path, help="write the table as markdown here")
+    ap.add_argument("--free-weight", type=float, nargs="*", default=[], help="extra rows: free-sample weight W")
+    ap.add_argument("--free-clearance", type=float, nargs="*", default=[], help="extra rows: free clearance C (m)")
+    ap.add_argument("--refine", action="store_true", help="also the refinement table (where Gauss-Newton ends)")
     a = ap.parse_args(argv)
     cfg = SlamConfig(workers=0)
-    cases: list[tuple[str, Any]] = [(r.name, lambda r=r: run_folder_case(r)) for r in a.runs]
+    cases: list[tuple[str, Any]] = [(r.name, lambda c=0.0, r=r: run_folder_case(r, free_clearance=c)) for r in a.runs]
     if not cases:
-        cases = [("synthetic corridor", synthetic_case)]
+        cases = [("synthetic corridor", lambda c=0.0: synthetic_case(free_clearance=c))]
     rows: list[tuple[str, Profile]] = []
+    refine_rows: list[str] = []
+    w = cfg.weighting("rich_slam")
     for name, load in cases:
         gt, scans = load()
+        extra = {f"hilbert_gp (free weight {fw:g})": (replace(w, free_weight=fw), scans) for fw in a.free_weight}
+        for c in a.free_clearance:
+            extra[f"hilbert_gp (free clearance {c:g} m)"] = (w, load(c)[1])
         test = np.linspace(len(scans) // 2, len(scans) - 1, a.scans).round().astype(int).tolist()
-        rows += [(name, p) for p in profiles(gt, scans, test, cfg)]
-        print("\n".join(table(rows[-9:])[2:]), flush=True)
+        new = [(name, p) for p in profiles(gt, scans, test, cfg, extra=extra)]
+        rows += new
+        print("\n".join(table(new)[2:]), flush=True)
+        if a.refine:
+            refine_rows += [f"| {name} " + r for r in refinement_bias(gt, scans, test, cfg)]
+            print("\n".join(refine_rows[-6:]), flush=True)
+    text = "\n".join(table(rows)) + "\n"
+    if refine_rows:
+        text += ("\n| data | objective | start | position error after [m] | yaw error after [deg] |\n"
+                 "|---|---|---|---|---|\n" + "\n".join(refine_rows) + "\n")
     if a.out:
-        a.out.write_text("\n".join(table(rows)) + "\n")
+        a.out.write_text(text)
     return 0
 
 

@@ -20,6 +20,7 @@ from stages.slam.backend import Backend, Device, resolve_device
 from stages.slam.beam_sampling import BeamSamples, to_world
 from stages.slam.grid_map import GridModel, GridParticleMaps, make_grid_spec
 from stages.slam.parallel import ParallelHilbertMaps
+from stages.slam.pose_refinement import PoseRefinement
 from stages.slam.rbpf import (
     RBPF,
     FilterHistory,
@@ -30,9 +31,13 @@ from stages.slam.rbpf import (
     odometry_increments,
 )
 
-Method = Literal["odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only"]
-METHODS: tuple[Method, ...] = ("odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only")
-HILBERT_METHODS = ("rich_slam", "rich_slam_no_et", "rich_slam_mean_only")
+Method = Literal["odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only",
+                 "rich_slam_refined"]
+METHODS: tuple[Method, ...] = ("odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only",
+                               "rich_slam_refined")
+HILBERT_METHODS = ("rich_slam", "rich_slam_no_et", "rich_slam_mean_only", "rich_slam_refined")
+#: methods whose particles are refined against their own maps before weighting (pose_refinement.py)
+REFINED_METHODS = ("rich_slam_refined",)
 F64 = npt.NDArray[np.floating[Any]]
 
 
@@ -67,6 +72,10 @@ class SlamConfig:
     grid: GridModel = field(default_factory=GridModel)
     grid_resolution: float = 0.1
     estimate: Literal["best_per_scan", "final_best_history"] = "best_per_scan"
+    #: the Laplace proposal of the refined method (``rich_slam_refined``); the others use eq. 21's
+    refinement: PoseRefinement = field(default_factory=lambda: PoseRefinement(iterations=3))
+    #: weight of the free samples' log terms against the endpoints' (1: the paper, eq. 23)
+    free_weight: float = 1.0
 
     def weighting(self, method: str) -> HilbertWeighting:
         return HilbertWeighting(
@@ -76,6 +85,7 @@ class SlamConfig:
             rings=self.et_rings,
             et_variance=self.et_variance,
             exponent=self.likelihood_exponent,
+            free_weight=self.free_weight,
         )
 
 
@@ -189,7 +199,9 @@ def run_method(
         h = _run_torch(cfg, basis, method, form, device, odometry, scans, rng, keep_best, on_step)
     else:
         try:
-            f = RBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold)
+            refinement = cfg.refinement if method in REFINED_METHODS else None
+            f = RBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold,
+                     refinement=refinement, basis=basis, exponent=cfg.likelihood_exponent)
             h = f.run(odometry_increments(odometry), scans, observer=keep_best, on_step=on_step)
         finally:
             if isinstance(maps, ParallelHilbertMaps):
@@ -211,6 +223,8 @@ def _run_torch(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, form: Liter
 
     if cfg.map_update != "kalman":
         raise ValueError("the torch backend implements the Kalman map update; use backend = numpy for laplace")
+    if method in REFINED_METHODS:
+        raise ValueError(f"{method} (pose refinement) runs on the numpy backend only; set slam.backend = numpy")
     maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
                             cfg.weighting(method), dtype=cfg.dtype, form=form, device=device)
     f = TorchRBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold)

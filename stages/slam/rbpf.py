@@ -19,6 +19,7 @@ import numpy.typing as npt
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, stencil_offsets, to_world
 from stages.slam.particle_linalg import StackedCovariance, StackedInformation
+from stages.slam.pose_refinement import PoseRefinement, log_gaussian, refine, sample_proposal
 
 Resampling = Literal["systematic", "stratified", "multinomial"]
 F64 = npt.NDArray[np.floating[Any]]
@@ -65,24 +66,31 @@ def odometry_increments(poses: npt.ArrayLike) -> F64:
 class MotionNoise:
     """Process noise ``v`` of eq. 21, added to the body-frame odometry increment.
 
-    Standard deviations per step: ``std_xy + rel_trans * |translation|`` on x and y,
-    ``std_yaw + rel_rot * |rotation|`` on yaw.
+    Standard deviations per step, in GMapping's motion-model form (srr, srt, str, stt):
+    ``std_xy + rel_trans * |translation| + trans_per_rot * |rotation|`` on x and y,
+    ``std_yaw + rel_rot * |rotation| + rot_per_trans * |translation|`` on yaw.
     """
 
     std_xy: float = 0.02
     std_yaw: float = 0.005
     rel_trans: float = 0.0
     rel_rot: float = 0.0
+    rot_per_trans: float = 0.0
+    trans_per_rot: float = 0.0
+
+    def std(self, u: npt.ArrayLike) -> tuple[float, float]:
+        """``(std on x and y, std on yaw)`` of the step with body-frame increment ``u``."""
+        u = np.asarray(u, dtype=np.float64).reshape(3)
+        trans, rot = float(np.hypot(u[0], u[1])), abs(float(u[2]))
+        return (self.std_xy + self.rel_trans * trans + self.trans_per_rot * rot,
+                self.std_yaw + self.rel_rot * rot + self.rot_per_trans * trans)
 
 
 def propagate(poses: F64, u: npt.ArrayLike, noise: MotionNoise, rng: np.random.Generator) -> F64:
     """Draw ``x_k[i] ~ f(x_k[i-1], u[i], v_k[i])`` for every particle (eq. 21; the proposal q)."""
     u = np.asarray(u, dtype=np.float64).reshape(3)
-    n = len(poses)
-    trans = float(np.hypot(u[0], u[1]))
-    s_xy = noise.std_xy + noise.rel_trans * trans
-    s_yaw = noise.std_yaw + noise.rel_rot * abs(float(u[2]))
-    v = rng.standard_normal((n, 3)) * np.array([s_xy, s_xy, s_yaw])
+    s_xy, s_yaw = noise.std(u)
+    v = rng.standard_normal((len(poses), 3)) * np.array([s_xy, s_xy, s_yaw])
     return compose(poses, u + v)
 
 
@@ -155,6 +163,8 @@ class HilbertWeighting:
     et_variance: Literal["exact", "taylor"] = "exact"
     #: exponent on the scan likelihood (1 = the paper)
     exponent: float = 1.0
+    #: weight of the free samples' log terms against the endpoints' (1 = the paper, eq. 23)
+    free_weight: float = 1.0
 
 
 class CovarianceMetric:
@@ -264,7 +274,7 @@ def hilbert_log_likelihood(
         var = np.maximum(metric.inner(phi_t, phi, phi_t, phi), 0.0)
     log_o, log_free = log_occupancy_terms(mean, var)
     pos = samples.labels > 0
-    total = np.sum(log_free[:, ~pos], axis=1)
+    total = weighting.free_weight * np.sum(log_free[:, ~pos], axis=1)
     if weighting.endpoint_tolerance > 0 and np.any(pos):
         et = _endpoint_tolerant_log_o(basis, theta, metric, poses, samples, weighting, phi, phi_t, mean, var,
                                       jac, jac_t, ring)
@@ -659,7 +669,17 @@ class RBPF:
         rng: np.random.Generator,
         resampling: Resampling = "systematic",
         resample_threshold: float = 0.5,
+        refinement: PoseRefinement | None = None,
+        basis: hm.HilbertBasis | None = None,
+        exponent: float = 1.0,
     ) -> None:
+        """``refinement`` (with the maps' ``basis``; Hilbert maps only): the Laplace proposal of
+        :mod:`pose_refinement` instead of eq. 21's; ``exponent`` is the scan likelihood's, as in the weights."""
+        if refinement is not None and refinement.enabled and (basis is None or not hasattr(maps, "theta")):
+            raise ValueError("pose refinement needs Hilbert-GP particle maps and their basis")
+        self.refinement = refinement if refinement is not None and refinement.enabled else None
+        self.basis = basis
+        self.exponent = exponent
         self.maps = maps
         self.poses: F64 = np.tile(np.asarray(initial_pose, dtype=np.float64).reshape(1, 3), (n_particles, 1))
         self.logw: F64 = np.full(n_particles, -np.log(n_particles))
@@ -685,10 +705,13 @@ class RBPF:
         observer: Callable[[RBPF, int], None] | None = None,
     ) -> StepResult:
         """One iteration of Algorithm 1; ``observer(self, best)`` sees the maps before resampling."""
-        if not first:
+        correction: F64 | float = 0.0
+        if not first and self.refinement is not None:
+            self.poses, correction = self._refined_proposal(u, samples)
+        elif not first:
             self.poses = propagate(self.poses, u, self.noise, self.rng)
         # eq. 22 against the prior maps, then eq. 15 (the update does not depend on the weights)
-        self.logw = self.logw + weigh_and_update(self.maps, self.poses, samples)
+        self.logw = self.logw + weigh_and_update(self.maps, self.poses, samples) + correction
         w = self.weights()
         self.logw = np.log(np.maximum(w, np.finfo(np.float64).tiny))  # keep them normalised
         best = int(np.argmax(w))
@@ -711,6 +734,22 @@ class RBPF:
             self._parents = idx  # particle k of the next step continues particle idx[k] of this step
         self.history.resampled.append(resampled)
         return StepResult(best, pose, n_eff, resampled)
+
+    def _refined_proposal(self, u: npt.ArrayLike, samples: BeamSamples) -> tuple[F64, F64]:
+        """Poses drawn from the Laplace proposal about each particle's refined pose, and the weight
+        correction ``log p(x | x_prev, u) - log q(x)`` (:mod:`pose_refinement`).
+
+        The map means are those the maps hold now: in the information form the mean the last weighting
+        solved, one scan behind the map (solving the current one would cost a second factorisation).
+        """
+        assert self.refinement is not None and self.basis is not None
+        x_pred = compose(self.poses, u)
+        s_xy, s_yaw = self.noise.std(u)
+        var = np.maximum(np.array([s_xy, s_xy, s_yaw]) ** 2, 1e-12)
+        theta = np.asarray(self.maps.theta)  # type: ignore[attr-defined]  # Hilbert maps (checked in __init__)
+        mode, A = refine(self.basis, theta, x_pred, var, samples, self.refinement, self.exponent)
+        x, log_q = sample_proposal(mode, A, self.refinement.covariance_scale, self.rng)
+        return x, log_gaussian(x, x_pred, var) - log_q
 
     def run(
         self,

@@ -36,6 +36,7 @@ from stages.slam.methods import (
     domain_from_trajectory,
     run_method,
 )
+from stages.slam.pose_refinement import PoseRefinement
 from stages.slam.rbpf import MotionNoise
 
 F64 = npt.NDArray[np.floating[Any]]
@@ -93,11 +94,28 @@ class SlamParams(StageParams):
         "taylor", description="variance at the tolerance points: with Phi linearised about the endpoint (the mean "
         "stays exact; log weights within 0.003 of the exact ones on the demo, README), or exact Phi^T cov Phi (slower)")
     likelihood_exponent: float = Field(1.0, gt=0, description="exponent on the scan likelihood (1: the paper)")
+    free_weight: float = Field(1.0, ge=0, description="weight of the free samples' log terms against the endpoints' "
+                               "in every Hilbert method's weight (1: the paper, eq. 23)")
+    # -- pose refinement (rich_slam_refined, stages/slam/pose_refinement.py)
+    refine_iterations: int = Field(3, ge=1, description="rich_slam_refined: Gauss-Newton steps per scan on each "
+                                   "particle's pose against its own map before weighting")
+    refine_max_step_xy: float = Field(0.25, gt=0, description="rich_slam_refined: largest x, y step per iteration (m)")
+    refine_max_step_yaw: float = Field(0.05, gt=0, description="rich_slam_refined: largest yaw step per iteration "
+                                       "(rad)")
+    refine_objective: Literal["gaussian", "logistic"] = Field(
+        "gaussian", description="rich_slam_refined: scan term matched: the map's own Gaussian regression of the "
+        "+-1 labels (least squares on y - m / sigma_n) or eq. 28's mean-only logistic term")
+    refine_covariance_scale: float = Field(1.0, gt=0, description="rich_slam_refined: the proposal is N(refined "
+                                           "pose, this * inverse Gauss-Newton Hessian)")
     # -- particles (Sec. IV-D1, D3)
-    motion_std_xy: float = Field(0.02, ge=0, description="process noise std on x and y per scan (m, eq. 21)")
-    motion_std_yaw: float = Field(0.005, ge=0, description="process noise std on yaw per scan (rad, eq. 21)")
-    motion_rel_trans: float = Field(0.0, ge=0, description="extra xy std per metre of odometry translation")
-    motion_rel_rot: float = Field(0.0, ge=0, description="extra yaw std per radian of odometry rotation")
+    motion_std_xy: float = Field(0.002, ge=0, description="process noise std on x and y per scan (m, eq. 21)")
+    motion_std_yaw: float = Field(0.0005, ge=0, description="process noise std on yaw per scan (rad, eq. 21)")
+    motion_rel_trans: float = Field(0.05, ge=0, description="extra xy std per metre of odometry translation")
+    motion_rel_rot: float = Field(0.005, ge=0, description="extra yaw std per radian of odometry rotation")
+    motion_rot_per_trans: float = Field(0.03, ge=0, description="extra yaw std per metre of odometry translation "
+                                        "(rad/m; GMapping's str)")
+    motion_trans_per_rot: float = Field(0.06, ge=0, description="extra xy std per radian of odometry rotation "
+                                        "(m/rad; GMapping's srt)")
     resampling: Literal["systematic", "stratified", "multinomial"] = Field(
         "systematic", description="resampler (systematic = low variance)")
     resample_threshold: float = Field(0.5, gt=0, le=1, description="resample when N_eff < this * N_p (eq. 31)")
@@ -141,13 +159,17 @@ class SlamParams(StageParams):
             basis_kind=self.basis_kind, endpoint_tolerance=self.endpoint_tolerance,
             et_ring_points=self.et_ring_points, et_rings=self.et_rings, et_variance=self.et_variance,
             likelihood_exponent=self.likelihood_exponent,
-            noise=MotionNoise(self.motion_std_xy, self.motion_std_yaw, self.motion_rel_trans, self.motion_rel_rot),
+            noise=MotionNoise(self.motion_std_xy, self.motion_std_yaw, self.motion_rel_trans, self.motion_rel_rot,
+                              self.motion_rot_per_trans, self.motion_trans_per_rot),
             resampling=self.resampling, resample_threshold=self.resample_threshold, map_update=self.map_update,
             laplace_iterations=self.laplace_iterations, map_form=self.map_form, dtype=self.dtype,
             workers=self.workers, backend=self.backend, device=self.device, torch_threads=self.torch_threads,
             grid=GridModel(self.grid_l_occ, self.grid_l_free, -self.grid_l_clamp, self.grid_l_clamp, 0.0,
                            self.grid_sigma_hit, self.grid_max_dist, self.grid_z_hit, self.grid_z_rand),
             grid_resolution=self.grid_resolution, estimate=self.estimate,
+            refinement=PoseRefinement(self.refine_iterations, self.refine_max_step_xy, self.refine_max_step_yaw,
+                                      self.refine_covariance_scale, self.refine_objective, self.noise_variance),
+            free_weight=self.free_weight,
         )
 
 

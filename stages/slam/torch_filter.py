@@ -108,9 +108,7 @@ class TorchRBPF:
     def _propagate(self, u: npt.ArrayLike) -> None:
         """eq. 21 with the numpy filter's draws (``rbpf.propagate``)."""
         u = np.asarray(u, dtype=np.float64).reshape(3)
-        nz = self.noise
-        s_xy = nz.std_xy + nz.rel_trans * float(np.hypot(u[0], u[1]))
-        s_yaw = nz.std_yaw + nz.rel_rot * abs(float(u[2]))
+        s_xy, s_yaw = self.noise.std(u)
         v = self.rng.standard_normal((self.n_particles, 3)) * np.array([s_xy, s_xy, s_yaw])
         self.poses = compose_t(self.poses, torch.as_tensor(u + v, device=self.device))
 

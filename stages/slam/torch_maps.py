@@ -212,7 +212,7 @@ class TorchHilbertMaps:
         # -- weights (eq. 22-30), against the maps before this scan's update
         var = None if var_rows is None else var_rows[0][:, :N]
         log_o, log_free = _log_sigmoid_pair(mean, var)
-        total = log_free[:, free].sum(dim=1)
+        total = w.free_weight * log_free[:, free].sum(dim=1)
         if not et:
             return w.exponent * (total + log_o[:, ends].sum(dim=1))
         mean_q = (torch.einsum("kqm,km->kq", extra, theta) if extra is not None and w.et_variance == "exact"
