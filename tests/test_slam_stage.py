@@ -142,6 +142,7 @@ def test_map_from_true_poses_is_right_and_frames_are_consistent(tmp_path: Path) 
 def test_zero_motion_noise_reproduces_odometry(tmp_path: Path) -> None:
     inp = _write_inputs(tmp_path / "in", 15)
     _run(_ctx(tmp_path / "out", inp["dirs"], n_particles=4, n_basis=36, motion_std_xy=0.0, motion_std_yaw=0.0,
+              motion_rel_trans=0.0, motion_rel_rot=0.0, motion_rot_per_trans=0.0, motion_trans_per_rot=0.0,
               methods=["fastslam_grid", "rich_slam"], workers=0, n_map_snapshots=0))
     odo = pq.read_table(inp["dirs"]["odometry"] / "odometry.parquet")
     for m in ("fastslam_grid", "rich_slam"):

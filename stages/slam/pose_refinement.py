@@ -43,9 +43,9 @@ class PoseRefinement:
     max_step_yaw: float = 0.05
     #: scale ``s`` of the proposal covariance ``s A^-1`` (1: the Laplace approximation itself)
     covariance_scale: float = 1.0
-    #: the scan term matched: "gaussian", the map's own regression model of the +-1 labels (eq. 15-19:
-    #: residuals ``(y - m) / sigma_n``, least squares); "logistic", eq. 28's ``log sigma(y m)`` mean-only term
-    objective: Literal["gaussian", "logistic"] = "gaussian"
+    #: the scan term matched: "logistic", eq. 28's ``log sigma(y m)`` mean-only term; "gaussian", the map's
+    #: own regression model of the +-1 labels (eq. 15-19: residuals ``(y - m) / sigma_n``, least squares)
+    objective: Literal["gaussian", "logistic"] = "logistic"
     #: weight of the free samples' terms against the endpoints' (as the weights' ``free_weight``)
     free_weight: float = 1.0
     #: sigma_n^2 of the Gaussian term (the map's noise variance; set by the method from the map settings)

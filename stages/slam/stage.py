@@ -103,7 +103,7 @@ class SlamParams(StageParams):
     refine_max_step_yaw: float = Field(0.05, gt=0, description="rich_slam_refined: largest yaw step per iteration "
                                        "(rad)")
     refine_objective: Literal["gaussian", "logistic"] = Field(
-        "gaussian", description="rich_slam_refined: scan term matched: the map's own Gaussian regression of the "
+        "logistic", description="rich_slam_refined: scan term matched: the map's own Gaussian regression of the "
         "+-1 labels (least squares on y - m / sigma_n) or eq. 28's mean-only logistic term")
     refine_covariance_scale: float = Field(1.0, gt=0, description="rich_slam_refined: the proposal is N(refined "
                                            "pose, this * inverse Gauss-Newton Hessian)")
