@@ -86,7 +86,7 @@ def test_stage_writes_every_method_and_artifact(tmp_path: Path) -> None:
                stats_every=4, grid_spacing=1.0)
     _run(ctx)
     out = tmp_path / "out"
-    for m in ("odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only"):
+    for m in ("odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only", "rich_slam_refined"):
         t = read_artifact(out / f"trajectory_{m}.parquet", "trajectory")
         assert t.num_rows == 30 and np.all(np.isfinite(t["x"].to_numpy()))
     main = read_artifact(out / "trajectory.parquet", "trajectory")
@@ -159,3 +159,5 @@ def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
         _run(_ctx(tmp_path / "out", inp["dirs"], methods=["odometry"], method="odometry"))
     with pytest.raises(ValueError, match="perfect square"):
         SlamParams(n_basis=250)
+    with pytest.raises(ValueError, match=r"rich_slam_refined.*numpy"):
+        SlamParams(backend="torch", methods=["odometry", "rich_slam_refined"])

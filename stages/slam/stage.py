@@ -30,6 +30,7 @@ from stages.slam.grid_map import GridModel
 from stages.slam.methods import (
     HILBERT_METHODS,
     METHODS,
+    REFINED_METHODS,
     Method,
     MethodResult,
     SlamConfig,
@@ -148,6 +149,10 @@ class SlamParams(StageParams):
         if self.backend == "torch" and self.map_update != "kalman":
             raise ValueError("backend = torch implements the Kalman map update only; use backend = numpy for "
                              "map_update = laplace")
+        refined = [m for m in dict.fromkeys([self.method, *self.methods]) if m in REFINED_METHODS]
+        if self.backend == "torch" and refined:
+            raise ValueError(f"{', '.join(refined)} (pose refinement) runs on the numpy backend only: set "
+                             "slam.backend = numpy or leave it out of slam.methods")
         if self.backend == "numpy" and self.device == "cuda":
             raise ValueError("device = cuda needs backend = torch (the numpy backend runs on the cpu)")
         return self
