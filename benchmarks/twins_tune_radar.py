@@ -36,7 +36,9 @@ WALK_SPEED = 1.0
 #: the candidate values per tuned RadarParams field (every combination is a trial; the first is the default)
 GRID: dict[str, tuple[float, ...]] = {
     "clutter_rate": (3.0, 20.0, 50.0),
-    "snr_ref_db": (84.5, 80.5, 76.5),
+    "snr_ref_db": (84.5, 80.5, 76.5, 70.5, 64.5),
+    "max_points": (200, 100, 50),
+    "clutter_snr_scale_db": (2.0, 15.0),
 }
 METRICS = ("n_radar", "lr_ratio", "cd_l2", "fscore_0.15", "ddist_p50", "ddist_p90")
 TWIN_SCENES = ("aspen_run0", "outdoors_run0", "edgar_classroom_run0", "ec_hallways_run0", "arpg_lab_run0",

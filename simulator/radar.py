@@ -332,7 +332,7 @@ def simulate_scan(scene: Scene, scat: Scatterers, p: RadarParams, index: int, t:
     c_wx = 2.0 * rng.integers(-kmax, kmax + 1, nc) / nb
     c_wz = rng.uniform(-np.sin(p.fov_elevation_deg * deg), np.sin(p.fov_elevation_deg * deg), nc)
     c_dop = rng.integers(-(n_d // 2), n_d // 2, nc) * dv
-    c_snr = p.cfar_threshold_db + rng.exponential(2.0, nc)
+    c_snr = p.cfar_threshold_db + rng.exponential(p.clutter_snr_scale_db, nc)
     c_f2 = c_r**2 * (1 - c_wx**2 - c_wz**2)
     c_xyz = np.column_stack([np.sqrt(np.maximum(c_f2, 0)), c_r * c_wx, c_r * c_wz])
 
