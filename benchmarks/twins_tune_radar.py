@@ -96,6 +96,20 @@ def trials(grid: dict[str, tuple[float, ...]]) -> list[dict[str, float]]:
     return [dict(zip(names, vals, strict=True)) for vals in itertools.product(*(grid[n] for n in names))]
 
 
+def read_trials(paths: list[Path]) -> list[dict[str, Any]]:
+    """Rows of trial CSVs (several runs of this script), each renumbered by its values in the current
+    :data:`GRID` (a column missing from an older CSV: that field's first grid value, the model default)."""
+    index = {tuple(t.values()): i for i, t in enumerate(trials(GRID))}
+    out: list[dict[str, Any]] = []
+    for path in paths:
+        with path.open(newline="") as fh:
+            for r in csv.DictReader(fh):
+                vals = tuple(float(r[k]) if k in r else GRID[k][0] for k in GRID)
+                out.append({**r, **dict(zip(GRID, vals, strict=True)), "trial": index[vals],
+                            "score": float(r["score"])})
+    return out
+
+
 def _metrics(radar: np.ndarray, lidar_f: np.ndarray) -> dict[str, float]:
     from stages.evaluate.map_metrics import lr_ratio, map_metrics
 
@@ -109,12 +123,22 @@ def main(argv: list[str]) -> int:
     from sources.mapset import read_map_set
 
     ap = argparse.ArgumentParser(prog="python -m benchmarks.twins_tune_radar", description=__doc__.split("\n")[0])
-    ap.add_argument("scenes", nargs="+")
+    ap.add_argument("scenes", nargs="*")
+    ap.add_argument("--pick", type=Path, nargs="+", default=[], help="only pick from these trial CSVs: the best "
+                    "trial among those run on every scene of the CSVs")
     ap.add_argument("--out", type=Path, default=Path("twins_radar_trials.csv"))
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--max-seconds", type=float, default=0.0, help="simulate only the first seconds (0: all)")
     ap.add_argument("--trials", default="", help="comma-separated trial numbers to run (default: all)")
     a = ap.parse_args(argv)
+    if a.pick:
+        rows = read_trials(a.pick)
+        scenes = {r["scene"] for r in rows}
+        full = [r for r in rows if {q["scene"] for q in rows if q["trial"] == r["trial"]} == scenes]
+        best = pick(full)
+        print(f"{len({r['trial'] for r in full})} trials on all of {sorted(scenes)}; best: trial {best['trial']} "
+              f"{trials(GRID)[best['trial']]}, mean score {best['mean_score']:.3f}")
+        return 0
     bad = [s for s in a.scenes if s in TWIN_SCENES]
     if bad:
         print(f"error: {', '.join(bad)}: a twin's own scene (ColoRadar 1-6); tune on RMap's train scenes only",
