@@ -10,7 +10,10 @@ A train scene has no paper duration: it is walked at :data:`WALK_SPEED` (the med
 ColoRadar runs, path length over the paper's duration: 0.55, 1.05, 0.99, 1.10, 0.81, 1.10 m/s), optionally
 only its first ``--max-seconds``.
 
-The search is a small seeded grid (:data:`GRID`, every combination); each trial's numbers go to a CSV row.
+The search space is a small grid (:data:`GRID`; ``--trials`` runs a subset by index, seed fixed); each trial's
+numbers go to a CSV row. The twins' tuning (docs/twins_radar_trials.csv, README "ColoRadar twins") ran 16
+of its 90 combinations in three rounds, each chosen after the previous one: clutter rate x SNR at the 200-point
+cap; the cap at 50; the cap at 100 with clutter rate, clutter strength and SNR.
 The pick (:func:`pick`): the trial with the smallest mean over the scenes of
 ``|log(L/R_sim / L/R_real)| + |log(CD-l2_sim / CD-l2_real)|`` (as sparse and as noisy as the real radar, in
 ratio terms). The twins' own scenes (RICH-SLAM's ColoRadar 1-6) are refused, so they only check.
@@ -117,6 +120,17 @@ def _metrics(radar: np.ndarray, lidar_f: np.ndarray) -> dict[str, float]:
     return {"n_radar": float(len(radar)), "lr_ratio": lr_ratio(lidar_f, radar), **m}
 
 
+def _pick_main(paths: list[Path]) -> int:
+    """Print the best trial among those run on every scene of the CSVs."""
+    rows = read_trials(paths)
+    names = {r["scene"] for r in rows}
+    done = [r for r in rows if {q["scene"] for q in rows if q["trial"] == r["trial"]} == names]
+    best = pick(done)
+    print(f"{len({r['trial'] for r in done})} trials on all of {sorted(names)}; best: trial {best['trial']} "
+          f"{trials(GRID)[best['trial']]}, mean score {best['mean_score']:.3f}")
+    return 0
+
+
 def main(argv: list[str]) -> int:
     from simulator.simulate import Simulation
     from simulator.twin import TwinParams, twin_world
@@ -132,13 +146,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--trials", default="", help="comma-separated trial numbers to run (default: all)")
     a = ap.parse_args(argv)
     if a.pick:
-        rows = read_trials(a.pick)
-        scenes = {r["scene"] for r in rows}
-        full = [r for r in rows if {q["scene"] for q in rows if q["trial"] == r["trial"]} == scenes]
-        best = pick(full)
-        print(f"{len({r['trial'] for r in full})} trials on all of {sorted(scenes)}; best: trial {best['trial']} "
-              f"{trials(GRID)[best['trial']]}, mean score {best['mean_score']:.3f}")
-        return 0
+        return _pick_main(a.pick)
+    if not a.scenes:
+        ap.error("name at least one train scene (or --pick CSV ...)")
     bad = [s for s in a.scenes if s in TWIN_SCENES]
     if bad:
         print(f"error: {', '.join(bad)}: a twin's own scene (ColoRadar 1-6); tune on RMap's train scenes only",
