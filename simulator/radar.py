@@ -34,7 +34,8 @@ and the out-of-box configuration ``cfarCfg -1 0 2 8 4 3 0 15 1``, ``cfarCfg -1 1
    Doppler bin * dv, intensity = the cell's SNR in dB.
 
 Clutter false alarms (sidelobes, interference: not modelled physically) are a Poisson number of points on
-the same grids with random Doppler. The driver's field-of-view filter and the strongest-``max_points``
+the same grids with random Doppler and an SNR of the CFAR threshold plus an exponential of mean
+``clutter_snr_scale_db``. The driver's field-of-view filter and the strongest-``max_points``
 cap come last. Each point's label and noise-free position come from the return that dominates its cell
 at the reported azimuth (``cell_scatterers`` counts the returns within 10 dB of the strongest in the cell).
 """
