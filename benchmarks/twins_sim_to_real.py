@@ -31,31 +31,48 @@ def _row(radar: np.ndarray, lidar_f: np.ndarray) -> dict[str, float]:
 
 
 def figure(out: Path) -> Path:
-    """The six twins' trajectories (as simulated: smoothed, with the heading every 10 s) over their maps."""
+    """The six twins' trajectories (as simulated: smoothed, with the heading every 10 s) over their maps.
+
+    Each map is drawn from above as the number of occupied voxels per 0.15 m column (log grey scale, after
+    the path carving of :func:`simulator.twin.twin_world`); the PNG is palette-quantised to stay small.
+    """
+    from PIL import Image
+
     from pipeline.sequences import load_registry
     from sources.simulated import twin_world_of
     from stages.evaluate.figures import _plt
 
     plt = _plt()
     reg = load_registry()
-    fig, axes = plt.subplots(2, 3, figsize=(16, 10), constrained_layout=True)
-    rng = np.random.default_rng(0)
+    fig, axes = plt.subplots(2, 3, figsize=(15, 9.5), constrained_layout=True)
     for ax, i in zip(axes.ravel(), range(1, 7), strict=True):
         seq = reg[f"coloradar_{i}_twin"]
         w = twin_world_of(seq)
-        cells = np.argwhere(w.grid.occupied)
-        pts = w.grid.centres(cells[rng.choice(len(cells), min(len(cells), 60000), replace=False)])
-        ax.scatter(pts[:, 0], pts[:, 1], c=pts[:, 2], s=0.2, cmap="viridis")
+        g = w.grid
+        cells = np.argwhere(g.occupied)
+        cols = np.zeros(g.shape[:2])
+        np.add.at(cols, (cells[:, 0], cells[:, 1]), 1.0)
+        x0, y0 = g.origin[0], g.origin[1]
+        x1, y1 = x0 + g.shape[0] * g.resolution, y0 + g.shape[1] * g.resolution
+        ax.imshow(np.log1p(cols).T, origin="lower", extent=(x0, x1, y0, y1), cmap="Greys", interpolation="nearest")
         st = w.trajectory.state(np.linspace(0, w.duration, 2000))
         ax.plot(st.position[:, 0], st.position[:, 1], "r-", lw=1.2)
         q = w.trajectory.state(np.arange(0, w.duration, 10.0))
         fwd = q.yaw + np.pi / 2  # the rig's forward axis (base +y)
         ax.quiver(q.position[:, 0], q.position[:, 1], np.cos(fwd), np.sin(fwd), color="r", scale=25, width=0.004)
-        ax.plot(*st.position[0, :2], "ko")
+        ax.plot(*st.position[0, :2], "bo", ms=6)
         ax.set_aspect("equal")
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
         ax.set_title(f"coloradar_{i}_twin: {seq.scene} ({w.duration:g} s)")
-    fig.savefig(out, dpi=100)
+    fig.suptitle("ColoRadar twins: recorded path as simulated (red; arrows: heading every 10 s; blue: start) "
+                 "over the lidar voxel map (grey: occupied voxels per column)")
+    tmp = out.with_name(out.name + ".tmp.png")
+    fig.savefig(tmp, dpi=80)
     plt.close(fig)
+    Image.open(tmp).convert("RGB").quantize(colors=64).save(out.with_name(out.name + ".q.png"), optimize=True)
+    tmp.unlink()
+    out.with_name(out.name + ".q.png").replace(out)
     return out
 
 

@@ -52,6 +52,9 @@ class RadarParams(_Params):
                                                                  "power exceeds this share of the first (0: off)")
     max_points: int = Field(200, ge=1, description="most detections reported per scan (strongest kept)")
     clutter_rate: float = Field(3.0, ge=0, description="mean number of clutter false alarms per scan (Poisson)")
+    clutter_snr_scale_db: float = Field(2.0, gt=0, description="clutter SNR = CFAR threshold + an exponential of "
+                                                                "this mean, dB (larger: clutter survives the "
+                                                                "max_points cap)")
     ghost_loss_db: float = Field(3.0, ge=0, description="extra loss of a double-bounce (mirror) path besides the "
                                                         "mirror's reflectivity, dB")
     scatterer_density: float = Field(4.0, gt=0, description="diffuse scatterers per m^2 on walls, boxes, floor and "

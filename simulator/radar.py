@@ -34,7 +34,8 @@ and the out-of-box configuration ``cfarCfg -1 0 2 8 4 3 0 15 1``, ``cfarCfg -1 1
    Doppler bin * dv, intensity = the cell's SNR in dB.
 
 Clutter false alarms (sidelobes, interference: not modelled physically) are a Poisson number of points on
-the same grids with random Doppler. The driver's field-of-view filter and the strongest-``max_points``
+the same grids with random Doppler and an SNR of the CFAR threshold plus an exponential of mean
+``clutter_snr_scale_db``. The driver's field-of-view filter and the strongest-``max_points``
 cap come last. Each point's label and noise-free position come from the return that dominates its cell
 at the reported azimuth (``cell_scatterers`` counts the returns within 10 dB of the strongest in the cell).
 """
@@ -332,7 +333,7 @@ def simulate_scan(scene: Scene, scat: Scatterers, p: RadarParams, index: int, t:
     c_wx = 2.0 * rng.integers(-kmax, kmax + 1, nc) / nb
     c_wz = rng.uniform(-np.sin(p.fov_elevation_deg * deg), np.sin(p.fov_elevation_deg * deg), nc)
     c_dop = rng.integers(-(n_d // 2), n_d // 2, nc) * dv
-    c_snr = p.cfar_threshold_db + rng.exponential(2.0, nc)
+    c_snr = p.cfar_threshold_db + rng.exponential(p.clutter_snr_scale_db, nc)
     c_f2 = c_r**2 * (1 - c_wx**2 - c_wz**2)
     c_xyz = np.column_stack([np.sqrt(np.maximum(c_f2, 0)), c_r * c_wx, c_r * c_wz])
 

@@ -56,6 +56,13 @@ COLORADAR_ERRORS: dict[str, float] = {
     "radar_mount_offset_sigma_m": 0.02,
 }
 
+#: RadarParams overrides of the twins (the AWR1843 defaults of simulator.params otherwise), picked by
+#: benchmarks/twins_tune_radar.py on three of RMap's *train* scenes (aspen_run9, arpg_lab_run2,
+#: ec_hallways_run4; never on the twins' own scenes): the trial of 13 with the smallest mean
+#: |log L/R ratio| + |log CD-l2 ratio| against the real radar maps (README "ColoRadar twins",
+#: docs/twins_radar_trials.csv)
+TWIN_RADAR: dict[str, float] = {"clutter_rate": 50.0, "max_points": 100}
+
 #: sample rate assumed for a scene without a known duration (the ground truth's ~15 Hz)
 DEFAULT_RATE_HZ = 15.0
 
@@ -69,6 +76,8 @@ class TwinParams(BaseModel):
     carve_radius: float = Field(0.45, ge=0, description="map voxels this close to the recorded path are removed, m")
     path: PathParams = Field(default_factory=PathParams, description="trajectory smoothing")
     scatter: VoxelScatterParams = Field(default_factory=VoxelScatterParams, description="radar scatterers")
+    radar: dict[str, float] = Field(default_factory=lambda: dict(TWIN_RADAR),
+                                    description="simulator.params.RadarParams overrides of the twin's radar")
     errors: dict[str, float] = Field(default_factory=lambda: dict(COLORADAR_ERRORS),
                                      description="simulator.sensor_errors.SensorErrors of the rig ({} for none)")
 
@@ -114,7 +123,7 @@ def twin_world(scene: str, map_points: np.ndarray, path: np.ndarray, map_file: P
     spec = WorldSpec(name=f"{scene}_twin", description=f"ColoRadar twin of {scene} (voxel map, recorded path)",
                      floor=sc.floor, ceiling=None, min_clearance=0.0,
                      # the loop is not used: the twin follows `traj`
-                     trajectory=TrajectorySpec(waypoints=wp), errors=dict(p.errors))
+                     trajectory=TrajectorySpec(waypoints=wp), radar=dict(p.radar), errors=dict(p.errors))
     text = "# ColoRadar twin (simulator.twin): not a world file; what it was made from\n" + "".join(
         f"{k} = {json.dumps(v)}\n" for k, v in {
             "scene": scene, "map_file": str(map_file), "map_voxels": len(pts), "carved_voxels": int((~keep).sum()),

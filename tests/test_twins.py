@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -208,3 +209,62 @@ def test_short_twin_piece_is_generated_and_ingested(monkeypatch: pytest.MonkeyPa
     xyz = np.column_stack([gt.column(c).to_numpy() for c in ("x", "y", "z")])
     k = np.clip(np.round(t / (86.0 / (len(path) - 1))).astype(int), 0, len(path) - 1)
     assert np.median(np.linalg.norm(xyz - path[k], axis=1)) < 0.3
+
+
+def _wall_twin(params: TwinParams | None = None) -> Any:
+    path = np.column_stack([np.linspace(0, 5, 50), np.zeros(50), np.full(50, 0.5)])
+    wall = np.array([[x, 2.0, z] for x in np.arange(-1, 6, 0.15) for z in np.arange(0, 1.5, 0.15)])
+    return twin_world("x_run0", wall, path, duration=10.0, params=params)
+
+
+def test_twin_radar_overrides_reach_the_simulation_only_for_twins() -> None:
+    """TwinParams.radar (default: the tuned TWIN_RADAR) sets the twin's RadarParams; other worlds keep theirs."""
+    from simulator.params import RadarParams
+    from simulator.simulate import Simulation
+    from simulator.twin import TWIN_RADAR
+
+    sim = Simulation(_wall_twin(), 2.0, 0, workers=1)
+    assert sim.radar_p == RadarParams(**TWIN_RADAR)
+    sim = Simulation(_wall_twin(TwinParams(radar={"clutter_rate": 33.0})), 2.0, 0, workers=1)
+    assert sim.radar_p.clutter_rate == 33.0
+    assert RadarParams().clutter_rate == 3.0  # the built-in worlds' default is not the twins' tuning
+
+
+def test_tuning_radar_map_equals_the_voxel_stage_sensor_model() -> None:
+    """benchmarks.twins_tune_radar.radar_map = the voxel stage's fan model with radar_prob_miss 0.5."""
+    from benchmarks.twins_tune_radar import radar_map
+    from simulator import rig
+    from simulator.simulate import Simulation
+    from stages.voxel.radar_model import fan_directions, radar_scan_keys
+    from stages.voxel.voxel_map import SensorModel, VoxelMap, coord_to_key
+
+    sim = Simulation(_wall_twin(TwinParams(errors={})), 3.0, 1, workers=1)
+    fast = {tuple(k) for k in coord_to_key(radar_map(sim), RES)}
+    vmap = VoxelMap(RES, SensorModel(0.7, 0.5, 0.12, 0.97, 0.5))
+    dirs = fan_directions(np.radians(45), np.radians(45), RES, 10.0)
+    for k in range(sim.n_windows):
+        for scan in sim.radar_scans(k):
+            st = sim.traj.state(np.array([scan.t]))
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = st.rotation.as_matrix()[0], st.position[0]
+            xyz = np.column_stack([scan.points[c] for c in ("x", "y", "z")]).astype(np.float64)
+            fan, hits = radar_scan_keys(xyz, T @ rig.BASE_TO_RADAR.matrix(), dirs, RES, 0.0, 10.0)
+            vmap.integrate(fan, hits, hits_need_free=True)
+    stage = {tuple(k) for k in coord_to_key(vmap.centres()[0], RES)}
+    assert len(stage) > 50
+    assert len(fast & stage) / len(fast | stage) > 0.95  # the cone test against the fan's voxels: edge ties only
+
+
+def test_tuning_pick_rule_and_refusal_of_the_twin_scenes(capsys: pytest.CaptureFixture[str]) -> None:
+    from benchmarks.twins_tune_radar import GRID, main, pick, score, trials
+
+    real = {"lr_ratio": 4.0, "cd_l2": 1.0}
+    assert score({"lr_ratio": 4.0, "cd_l2": 1.0}, real) == 0.0
+    assert score({"lr_ratio": 2.0, "cd_l2": 2.0}, real) == pytest.approx(2 * np.log(2))
+    rows = [{"trial": 0, "score": 1.0}, {"trial": 0, "score": 0.2}, {"trial": 1, "score": 0.5},
+            {"trial": 1, "score": 0.6}]
+    assert pick(rows)["trial"] == 1
+    ts = trials(GRID)
+    assert len(ts) == int(np.prod([len(v) for v in GRID.values()])) and ts[0] == {k: v[0] for k, v in GRID.items()}
+    assert main(["aspen_run0"]) == 2
+    assert "train scenes only" in capsys.readouterr().err
