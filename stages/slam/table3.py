@@ -1,0 +1,156 @@
+"""RICH-SLAM Table III over several seeds: every method on run folders' cached inputs, resumable.
+
+The slam stage runs one seed per run; Table III with a spread needs several, and 200-particle runs take
+hours on a CPU, so this runner appends one JSON line per (sequence, method, seed) to ``--out`` as each
+finishes and skips the ones already there: stop it at any point and run the same command again.
+
+    pipeline run odometry --seq SEQ ...                       # ingest, filter, odometry (and ground truth)
+    python -m stages.slam.table3 RUNS/SEQ [RUNS/SEQ ...] --methods odometry,fastslam_grid,rich_slam \\
+        --seeds 0,1,2 --set n_particles=200 --out table3.jsonl
+    python -m stages.slam.table3 --table table3.jsonl         # the markdown table: mean, spread, seeds
+
+Errors are position RMSE [m] / yaw RMSE [deg] after the SE(2) alignment on the first 100 matched frames
+(the evaluate stage's ``evaluate_trajectory``). ``--set`` takes the slam stage's parameters (JSON values).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from collections import defaultdict
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from stages.evaluate.trajectory import evaluate_trajectory, quat_to_yaw
+from stages.slam import hilbert_map as hm
+from stages.slam.beam_sampling import BeamSamples
+from stages.slam.methods import domain_from_trajectory, run_method
+from stages.slam.stage import SlamParams, beam_samples_by_scan
+from stages.slam.unit_study import read_run_folder
+
+F64 = npt.NDArray[np.floating[Any]]
+
+
+Truth = tuple[npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.float64]]
+
+
+def load_inputs(run_dir: Path, p: SlamParams) -> tuple[npt.NDArray[np.int64], F64, list[BeamSamples], Truth]:
+    """Scan times, odometry poses (valid rows, scan order), beam samples and ground truth of a run folder."""
+    from schemas.io import read_artifact
+
+    gt, calib, radar = read_run_folder(run_dir)
+    o = read_artifact(run_dir / "odometry" / "odometry.parquet", "odometry")
+    scans = o["scan"].to_numpy().astype(np.int64)
+    poses = np.stack([o[c].to_numpy().astype(np.float64) for c in ("x", "y", "yaw")], 1)
+    keep = np.all(np.isfinite(poses), 1)
+    if "valid" in o.column_names:
+        keep &= o["valid"].to_numpy(zero_copy_only=False).astype(bool)
+    order = np.argsort(scans[keep], kind="stable")
+    scans, t_ns, poses = scans[keep][order], o["t_ns"].to_numpy()[keep][order].astype(np.int64), poses[keep][order]
+    xyz = np.stack([radar[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], 1)
+    samples = beam_samples_by_scan(radar["scan"].to_numpy().astype(np.int64), xyz, scans, calib, p)
+    truth: Truth = (gt["t_ns"].astype(np.int64), np.stack([gt["x"], gt["y"]], 1).astype(np.float64),
+                    quat_to_yaw(gt["qx"], gt["qy"], gt["qz"], gt["qw"]))
+    return t_ns, poses, samples, truth
+
+
+def done_keys(out: Path) -> set[tuple[str, str, int, str]]:
+    if not out.exists():
+        return set()
+    rows = [json.loads(line) for line in out.read_text().splitlines() if line.strip()]
+    return {(r["seq"], r["method"], int(r["seed"]), r.get("config", "")) for r in rows}
+
+
+def append_row(out: Path, row: dict[str, Any]) -> None:
+    """One JSON line, flushed and synced (a killed run loses at most the row being computed)."""
+    with out.open("a") as f:
+        f.write(json.dumps(row) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], overrides: dict[str, Any],
+        out: Path) -> None:
+    p = SlamParams(**overrides)
+    config = json.dumps(overrides, sort_keys=True)
+    done = done_keys(out)
+    for run_dir in runs:
+        todo = [(m, s) for s in seeds for m in methods if (run_dir.name, m, s, config) not in done]
+        if not todo:
+            continue
+        t_ns, odo, samples, truth = load_inputs(run_dir, p)
+        half, centre = domain_from_trajectory(odo[:, :2], p.domain_padding)
+        basis = hm.make_basis(half, centre, p.n_basis, p.basis_kind)
+        cfg = p.config()
+        for m, s in todo:
+            t0 = time.perf_counter()
+            res = run_method(m, odo, samples, basis, cfg, s)
+            est = np.asarray(res.poses, dtype=np.float64)
+            e = evaluate_trajectory(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2], n_align=100)
+            row = {"seq": run_dir.name, "method": m, "seed": s, "config": config, "pos_rmse_m": e.pos_rmse_m,
+                   "yaw_rmse_deg": e.yaw_rmse_deg, "s_per_scan": (time.perf_counter() - t0) / len(odo),
+                   "resamplings": res.resampled, "scans": len(odo)}
+            append_row(out, row)
+            print(f"{run_dir.name} {m} seed {s}: {e.pos_rmse_m:.3f} m / {e.yaw_rmse_deg:.2f} deg "
+                  f"({row['s_per_scan']:.3f} s/scan)", flush=True)
+
+
+def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = ()) -> str:
+    """Markdown: per method and sequence, mean position / yaw RMSE over seeds, +- half the range, seeds."""
+    d: dict[tuple[str, str], list[tuple[float, float]]] = defaultdict(list)
+    for r in rows:
+        d[(r["seq"], r["method"])].append((float(r["pos_rmse_m"]), float(r["yaw_rmse_deg"])))
+    seqs = list(dict.fromkeys(r["seq"] for r in rows))
+    ms = list(dict.fromkeys([*methods, *(r["method"] for r in rows)]))
+    lines = ["| method | " + " | ".join(seqs) + " |", "|---|" + "---|" * len(seqs)]
+    for m in ms:
+        cells = []
+        for s in seqs:
+            v = np.asarray(d.get((s, m), []))
+            if not len(v):
+                cells.append("–")
+            elif len(v) == 1 or m == "odometry":  # the odometry does not depend on the seed
+                cells.append(f"{v[0, 0]:.2f} / {v[0, 1]:.2f}" + ("" if m == "odometry" else " (1 seed)"))
+            else:
+                h = (v.max(0) - v.min(0)) / 2
+                cells.append(f"{v[:, 0].mean():.2f} ± {h[0]:.2f} / {v[:, 1].mean():.2f} ± {h[1]:.2f} ({len(v)})")
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap.add_argument("runs", nargs="*", type=Path, help="run folders <runs>/<seq> with ingest/, filter/, odometry/")
+    ap.add_argument("--methods", default="odometry,fastslam_grid,rich_slam")
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--set", action="append", default=[], metavar="PARAM=JSON", help="a slam stage parameter")
+    ap.add_argument("--out", type=Path, default=Path("table3.jsonl"))
+    ap.add_argument("--table", type=Path, help="print the markdown table of this results file and exit")
+    a = ap.parse_args(argv)
+    if a.table:
+        rows = [json.loads(line) for line in a.table.read_text().splitlines() if line.strip()]
+        print(table(rows))
+        return 0
+    overrides: dict[str, Any] = {}
+    for item in a.set:
+        key, _, value = item.partition("=")
+        try:
+            overrides[key.removeprefix("slam.")] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[key.removeprefix("slam.")] = value
+    missing = [r for r in a.runs if not (r / "odometry" / "odometry.parquet").exists()]
+    if missing:
+        ap.error(f"{missing[0]}: no odometry/odometry.parquet; run `pipeline run odometry --seq "
+                 f"{missing[0].name}` first")
+    run(a.runs, a.methods.split(","), [int(s) for s in a.seeds.split(",")], overrides, a.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
