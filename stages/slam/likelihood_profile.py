@@ -36,7 +36,7 @@ from stages.slam.beam_sampling import BeamSamples, sample_beams, to_world
 from stages.slam.grid_map import GridParticleMaps, likelihood_field_log_likelihood, make_grid_spec
 from stages.slam.methods import SlamConfig, domain_from_trajectory
 from stages.slam.pose_refinement import PoseRefinement, refine
-from stages.slam.rbpf import HilbertParticleMaps, HilbertWeighting, compose, hilbert_log_likelihood
+from stages.slam.rbpf import HilbertParticleMaps, HilbertWeighting, compose, hilbert_log_likelihood, wrap_angle
 
 F64 = npt.NDArray[np.floating[Any]]
 #: body-frame offsets profiled: metres forward / lateral, degrees of yaw
@@ -157,7 +157,7 @@ def refinement_bias(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], 
                 mode, _ = refine(basis, np.repeat(hil.theta, 2, 0), x0, wide, scans[k], st, cfg.likelihood_exponent)
                 e = mode - gt[k]
                 errs.setdefault((objective, label), []).append(
-                    np.column_stack([np.hypot(e[:, 0], e[:, 1]), np.degrees(np.abs(np.angle(np.exp(1j * e[:, 2]))))]))
+                    np.column_stack([np.hypot(e[:, 0], e[:, 1]), np.degrees(np.abs(wrap_angle(e[:, 2])))]))
     rows = []
     for (objective, label), v in errs.items():
         a = np.concatenate(v)

@@ -27,6 +27,7 @@ import numpy.typing as npt
 
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, to_world
+from stages.slam.se2 import wrap_angle
 
 F64 = npt.NDArray[np.floating[Any]]
 LOG_2PI = float(np.log(2.0 * np.pi))
@@ -104,7 +105,7 @@ def _objective_terms(basis: hm.HilbertBasis, theta: F64, x: F64, samples: BeamSa
 
 def _prior_delta(x: F64, x_pred: F64) -> F64:
     d = x - x_pred
-    d[:, 2] = np.angle(np.exp(1j * d[:, 2]))
+    d[:, 2] = wrap_angle(d[:, 2])
     return d
 
 
@@ -144,7 +145,7 @@ def refine(basis: hm.HilbertBasis, theta: F64, x_pred: F64, prior_var: F64, samp
         step = np.linalg.solve(A, (g - d / prior_var)[..., None])[..., 0]
         shrink = np.min(np.minimum(1.0, lim / np.maximum(np.abs(step), 1e-300)), axis=1)
         x = x + step * shrink[:, None]
-        x[:, 2] = np.angle(np.exp(1j * x[:, 2]))
+        x[:, 2] = wrap_angle(x[:, 2])
     return best_x, best_A
 
 
@@ -155,7 +156,7 @@ def sample_proposal(mode: F64, A: F64, scale: float, rng: np.random.Generator) -
     L = np.linalg.cholesky(cov)
     eps = rng.standard_normal((len(mode), 3))
     x = mode + np.einsum("kij,kj->ki", L, eps)
-    x[:, 2] = np.angle(np.exp(1j * x[:, 2]))
+    x[:, 2] = wrap_angle(x[:, 2])
     logdet = 2.0 * np.sum(np.log(np.diagonal(L, axis1=1, axis2=2)), axis=1)
     log_q = -0.5 * (np.sum(eps * eps, axis=1) + logdet + 3 * LOG_2PI)
     return x, log_q

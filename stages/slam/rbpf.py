@@ -20,30 +20,10 @@ from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, stencil_offsets, to_world
 from stages.slam.particle_linalg import StackedCovariance, StackedInformation
 from stages.slam.pose_refinement import PoseRefinement, log_gaussian, refine, sample_proposal
+from stages.slam.se2 import compose, wrap_angle
 
 Resampling = Literal["systematic", "stratified", "multinomial"]
 F64 = npt.NDArray[np.floating[Any]]
-
-
-# -- SE(2) helpers ---------------------------------------------------------------------------------------
-
-
-def wrap_angle(a: npt.ArrayLike) -> F64:
-    """Angles to (-pi, pi]."""
-    a = np.asarray(a, dtype=np.float64)
-    return -((-a + np.pi) % (2 * np.pi) - np.pi)
-
-
-def compose(poses: npt.ArrayLike, delta: npt.ArrayLike) -> F64:
-    """``x (+) u``: apply body-frame increments ``delta (..., 3)`` to poses ``(..., 3)``."""
-    x = np.asarray(poses, dtype=np.float64)
-    d = np.asarray(delta, dtype=np.float64)
-    c, s = np.cos(x[..., 2]), np.sin(x[..., 2])
-    return np.stack(
-        [x[..., 0] + c * d[..., 0] - s * d[..., 1], x[..., 1] + s * d[..., 0] + c * d[..., 1],
-         wrap_angle(x[..., 2] + d[..., 2])],
-        axis=-1,
-    )
 
 
 def odometry_increments(poses: npt.ArrayLike) -> F64:
@@ -762,10 +742,17 @@ class RBPF:
 
         ``observer(i, filter, best)`` runs at every step before resampling; ``on_step()`` after it.
         """
-        u = np.asarray(increments, dtype=np.float64).reshape(-1, 3)
-        for i, samples in enumerate(scans):
-            obs = None if observer is None else (lambda f, best, i=i: observer(i, f, best))
-            self.step(u[i], samples, first=(i == 0), observer=obs)
-            if on_step is not None:
-                on_step()
+        run_steps(self.step, increments, scans, observer, on_step)
         return self.history
+
+
+def run_steps(step: Callable[..., Any], increments: npt.ArrayLike, scans: Sequence[BeamSamples],
+              observer: Callable[[int, Any, int], None] | None, on_step: Callable[[], None] | None) -> None:
+    """The scan loop of :meth:`RBPF.run` (and the torch filter's): ``step(u[i], scan, first, observer)``
+    per scan, ``observer(i, filter, best)`` before resampling, ``on_step()`` after it."""
+    u = np.asarray(increments, dtype=np.float64).reshape(-1, 3)
+    for i, samples in enumerate(scans):
+        obs = None if observer is None else (lambda f, best, i=i: observer(i, f, best))
+        step(u[i], samples, first=(i == 0), observer=obs)
+        if on_step is not None:
+            on_step()

@@ -12,6 +12,7 @@ Hilbert methods, else a Hilbert map built along its trajectory. Units: see READM
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -256,7 +257,11 @@ def read_calibration(ctx: StageContext) -> F64:
 
 def read_odometry(ctx: StageContext) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F64]:
     """Scan ids, times and (x, y, yaw) of the valid odometry rows, in scan order."""
-    path = ctx.input("odometry", "odometry.parquet")
+    return read_odometry_file(ctx.input("odometry", "odometry.parquet"), ctx.seq.name)
+
+
+def read_odometry_file(path: Path, seq: str) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F64]:
+    """:func:`read_odometry` of an ``odometry.parquet`` (``seq`` names the rerun command of the error)."""
     t = read_artifact(path, "odometry")
     scans = t["scan"].to_numpy().astype(np.int64)
     keep = np.ones(len(scans), dtype=bool)
@@ -268,7 +273,7 @@ def read_odometry(ctx: StageContext) -> tuple[npt.NDArray[np.int64], npt.NDArray
     scans, t_ns, poses = scans[keep][order], t["t_ns"].to_numpy()[keep][order], poses[keep][order]
     if len(scans) < 2:
         raise UserError(f"{path}: {len(scans)} valid odometry poses; the slam stage needs at least 2 "
-                        f"(rerun `pipeline run odometry --seq {ctx.seq.name} --force`)")
+                        f"(rerun `pipeline run odometry --seq {seq} --force`)")
     return scans, t_ns.astype(np.int64), poses
 
 

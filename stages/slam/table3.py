@@ -31,7 +31,7 @@ from stages.evaluate.trajectory import evaluate_trajectory, quat_to_yaw
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
 from stages.slam.methods import domain_from_trajectory, run_method
-from stages.slam.stage import SlamParams, beam_samples_by_scan
+from stages.slam.stage import SlamParams, beam_samples_by_scan, read_odometry_file
 from stages.slam.unit_study import read_run_folder
 
 F64 = npt.NDArray[np.floating[Any]]
@@ -42,17 +42,8 @@ Truth = tuple[npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.flo
 
 def load_inputs(run_dir: Path, p: SlamParams) -> tuple[npt.NDArray[np.int64], F64, list[BeamSamples], Truth]:
     """Scan times, odometry poses (valid rows, scan order), beam samples and ground truth of a run folder."""
-    from schemas.io import read_artifact
-
     gt, calib, radar = read_run_folder(run_dir)
-    o = read_artifact(run_dir / "odometry" / "odometry.parquet", "odometry")
-    scans = o["scan"].to_numpy().astype(np.int64)
-    poses = np.stack([o[c].to_numpy().astype(np.float64) for c in ("x", "y", "yaw")], 1)
-    keep = np.all(np.isfinite(poses), 1)
-    if "valid" in o.column_names:
-        keep &= o["valid"].to_numpy(zero_copy_only=False).astype(bool)
-    order = np.argsort(scans[keep], kind="stable")
-    scans, t_ns, poses = scans[keep][order], o["t_ns"].to_numpy()[keep][order].astype(np.int64), poses[keep][order]
+    scans, t_ns, poses = read_odometry_file(run_dir / "odometry" / "odometry.parquet", run_dir.name)
     xyz = np.stack([radar[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], 1)
     samples = beam_samples_by_scan(radar["scan"].to_numpy().astype(np.int64), xyz, scans, calib, p)
     truth: Truth = (gt["t_ns"].astype(np.int64), np.stack([gt["x"], gt["y"]], 1).astype(np.float64),

@@ -19,7 +19,7 @@ import numpy.typing as npt
 import torch
 
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.rbpf import FilterHistory, MotionNoise, Resampling, StepResult
+from stages.slam.rbpf import FilterHistory, MotionNoise, Resampling, StepResult, run_steps
 from stages.slam.torch_maps import TorchHilbertMaps
 
 F64 = npt.NDArray[np.floating[Any]]
@@ -167,10 +167,5 @@ class TorchRBPF:
         on_step: Callable[[], None] | None = None,
     ) -> FilterHistory:
         """Run over all scans (as :meth:`RBPF.run`) and return the history on the host."""
-        u = np.asarray(increments, dtype=np.float64).reshape(-1, 3)
-        for i, samples in enumerate(scans):
-            obs = None if observer is None else (lambda f, best, i=i: observer(i, f, best))
-            self.step(u[i], samples, first=(i == 0), observer=obs)
-            if on_step is not None:
-                on_step()
+        run_steps(self.step, increments, scans, observer, on_step)
         return self.finish()
