@@ -345,3 +345,60 @@ def test_information_scan_whitens_in_place_and_refuses_non_contiguous_output() -
     np.testing.assert_allclose(means, np.einsum("knm,km->kn", rows[:, :2], theta), atol=1e-12)
     with pytest.raises(ValueError, match="C-contiguous"):
         st.scan(rows, out=np.asfortranarray(np.empty_like(rows)))
+
+
+@pytest.mark.parametrize("form", ["information", "covariance"])
+def test_endpoint_noise_variance_equals_batch_heteroscedastic_regression(form: str) -> None:
+    """Per-label sigma_n^2 (issue 17 lever): sequential updates of both map forms equal the batch
+    Bayesian regression ``cov = (Lambda^-1 + Phi^T R^-1 Phi)^-1``, ``theta = cov Phi^T R^-1 y`` with
+    ``R = diag(0.09 at endpoints, 0.36 at free samples)``, and differ from the one-noise map."""
+    rng = np.random.default_rng(11)
+    b = hm.make_basis([8.0, 8.0], [0.0, 0.0], 64)
+    w = HilbertWeighting()
+    het = HilbertParticleMaps(b, 3, 1.5, 16.0, 0.36, w, form=form,  # type: ignore[arg-type]
+                              endpoint_noise_variance=0.09)
+    one = HilbertParticleMaps(b, 3, 1.5, 16.0, 0.36, w, form=form)  # type: ignore[arg-type]
+    rows: list[list[np.ndarray]] = [[] for _ in range(3)]
+    labels: list[np.ndarray] = []
+    for _ in range(12):
+        poses = np.column_stack([rng.uniform(-2, 2, (3, 2)), rng.uniform(-3, 3, 3)])
+        s = sample_beams(rng.uniform(-4, 4, (6, 2)), [0.1, 0.0], 1.0, 5.0)
+        het.log_likelihood(poses, s)  # the weighting's cached products must not change the update
+        het.update(poses, s)
+        one.update(poses, s)
+        for k in range(3):
+            rows[k].append(hm.features(b, to_world(poses[k], s.points)))
+        labels.append(s.labels)
+    y = np.concatenate(labels).astype(np.float64)
+    r = np.where(y > 0, 0.09, 0.36)
+    lam = hm.prior_variances(b, 1.5, 16.0)
+    for k in range(3):
+        phi = np.concatenate(rows[k])
+        cov = np.linalg.inv(np.diag(1.0 / lam) + phi.T @ (phi / r[:, None]))
+        theta = cov @ (phi.T @ (y / r))
+        got_theta, got_cov = het.map_of(k)
+        np.testing.assert_allclose(got_theta, theta, atol=1e-7)
+        np.testing.assert_allclose(got_cov, cov, atol=1e-9)
+        assert np.abs(one.map_of(k)[0] - theta).max() > 0.05  # the lever changes the map
+
+
+def test_endpoint_noise_fused_step_and_workers_equal_weight_then_update() -> None:
+    """With per-label noise the blocked step (and the worker processes) fall back to weighing, then updating."""
+    from stages.slam.parallel import ParallelHilbertMaps
+
+    rng = np.random.default_rng(12)
+    b = hm.make_basis([8.0, 8.0], [0.0, 0.0], 64)
+    ref = HilbertParticleMaps(b, 5, 1.5, 16.0, 0.36, HilbertWeighting(), endpoint_noise_variance=0.09)
+    fused = HilbertParticleMaps(b, 5, 1.5, 16.0, 0.36, HilbertWeighting(), endpoint_noise_variance=0.09)
+    with ParallelHilbertMaps(b, 5, 1.5, 16.0, 0.36, HilbertWeighting(), workers=2,
+                             endpoint_noise_variance=0.09) as par:
+        for _ in range(6):
+            poses = np.column_stack([rng.uniform(-2, 2, (5, 2)), rng.uniform(-3, 3, 5)])
+            s = sample_beams(rng.uniform(-4, 4, (6, 2)), [0.1, 0.0], 1.0, 5.0)
+            want = ref.log_likelihood(poses, s)
+            ref.update(poses, s)
+            np.testing.assert_allclose(fused.weigh_and_update(poses, s), want, rtol=1e-9, atol=1e-9)
+            np.testing.assert_allclose(par.log_likelihood(poses, s), want, rtol=1e-9, atol=1e-9)
+        for k in (0, 4):
+            np.testing.assert_allclose(fused.map_of(k)[1], ref.map_of(k)[1], atol=1e-12)
+            np.testing.assert_allclose(par.map_of(k)[1], ref.map_of(k)[1], atol=1e-9)

@@ -161,6 +161,8 @@ def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
         SlamParams(n_basis=250)
     with pytest.raises(ValueError, match=r"rich_slam_refined.*numpy"):
         SlamParams(backend="torch", methods=["odometry", "rich_slam_refined"])
+    with pytest.raises(ValueError, match=r"endpoint_noise_variance.*numpy"):
+        SlamParams(backend="torch", methods=["rich_slam"], endpoint_noise_variance=0.09)
 
 
 def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
@@ -187,3 +189,8 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
     assert len(out.read_text().splitlines()) == 4
     md = table3.table(rows)
     assert "| fastslam_grid |" in md and "(2)" in md and md.count("\n") == 3
+    cells = table3.by_sequence(rows)["seq_a"]
+    assert len(cells["odometry"]) == 1 and len(cells["fastslam_grid"]) == 2  # odometry once, a dot per seed
+    png = tmp_path / "t3.png"
+    assert table3.main(["--table", str(out), "--figure", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not list(tmp_path.glob("*.tmp.png"))

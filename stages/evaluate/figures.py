@@ -193,3 +193,36 @@ def plot_query_resolutions(path: Path, panels: Sequence[tuple[float, F64, F64, F
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_table3(path: Path, results: Mapping[str, Mapping[str, Sequence[tuple[float, float]]]],
+                title: str = "", per_row: int = 5) -> Path:
+    """RICH-SLAM Table III over seeds: one panel per sequence, a bar per method at its mean yaw RMSE
+    with one dot per seed, and the mean position RMSE written on the bar.
+
+    ``results[sequence][method]`` are the seeds' ``(position RMSE m, yaw RMSE deg)``.
+    """
+    plt = _plt()
+    seqs = list(results)
+    rows = max(1, -(-len(seqs) // per_row))
+    cols = min(per_row, max(1, len(seqs)))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.1 * cols, 3.4 * rows), squeeze=False, constrained_layout=True)
+    for ax in axes.ravel()[len(seqs):]:
+        ax.set_visible(False)
+    for ax, seq in zip(axes.ravel(), seqs, strict=False):
+        methods = list(results[seq])
+        for i, m in enumerate(methods):
+            v = np.asarray(results[seq][m], dtype=np.float64).reshape(-1, 2)
+            ax.bar(i, v[:, 1].mean(), color=colour(m), alpha=0.55, width=0.75)
+            ax.plot(np.full(len(v), float(i)), v[:, 1], "o", color=colour(m), ms=3.5, mec="black", mew=0.4)
+            ax.text(i, 0.0, f"{v[:, 0].mean():.2f} m", ha="center", va="bottom", fontsize=6.5, rotation=90)
+        ax.set_xticks(range(len(methods)), [METHOD_LABELS.get(m, m) for m in methods], rotation=40,
+                      ha="right", fontsize=7)
+        ax.set_title(seq, fontsize=9)
+        ax.set_ylabel("yaw RMSE [deg]", fontsize=8)
+        ax.grid(axis="y", alpha=0.3)
+    fig.suptitle(title or "Table III: yaw RMSE (bar: mean over seeds, dots: seeds; text: position RMSE)",
+                 fontsize=10)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -8,10 +8,11 @@ weight with the variance (eq. 28, 30), without it (mean only), and the FastSLAM 
 field, each averaged over several test scans.
 
     python -m stages.slam.likelihood_profile [RUN_DIR ...] [--scans 8] [--out table.md]
-        [--free-weight W ...] [--free-clearance C ...] [--refine]
+        [--free-weight W ...] [--free-clearance C ...] [--endpoint-noise S2 ...] [--refine]
 
-``--free-weight`` / ``--free-clearance`` add rows for the Hilbert weight with the free samples' log terms
-weighted by W, or with no free sample within C metres of the endpoint (issue 17's levers inside the
+``--free-weight`` / ``--free-clearance`` / ``--endpoint-noise`` add rows for the Hilbert weight with the free
+samples' log terms weighted by W, with no free sample within C metres of the endpoint, or with a map whose
+endpoints (+1 samples) have the noise variance S2 instead of sigma_n^2 (issue 17's levers inside the
 paper's model). ``--refine`` adds the refinement table: where Gauss-Newton on each objective of
 :mod:`pose_refinement` takes the test scans from the true pose and from offsets of it, with a prior too
 wide to hold them (the map's own optimum; a good objective stays near zero).
@@ -72,13 +73,14 @@ def offset_poses(pose: F64, axis: str) -> tuple[F64, F64]:
 
 
 def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: SlamConfig,
-             padding: float = 10.0, extra: dict[str, tuple[HilbertWeighting, Sequence[BeamSamples]]] | None = None,
+             padding: float = 10.0,
+             extra: dict[str, tuple[HilbertWeighting, Sequence[BeamSamples], float | None]] | None = None,
              ) -> list[Profile]:
     """Profiles of the Hilbert weight (with and without variance) and the grid likelihood field.
 
     ``gt (T, 3)`` are the true poses of ``scans``; every scan before a test scan builds the map (one
     map per model, grown incrementally), the test scan is only scored. ``extra``: more Hilbert rows, each
-    a weighting and its own beam samples (maps built from them).
+    a weighting, its own beam samples and its endpoints' noise variance (maps built from them; None: sigma_n^2).
     """
     half, centre = domain_from_trajectory(gt[:, :2], padding)
     basis = hm.make_basis(half, centre, cfg.n_basis, cfg.basis_kind)
@@ -90,9 +92,10 @@ def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: Sl
         "hilbert_gp (variance, ET)": (w, scans, hil),
         "hilbert_gp (mean only)": (cfg.weighting("rich_slam_mean_only"), scans, hil),
         "fastslam_grid": (None, scans, None)}
-    for name, (wx, sx) in (extra or {}).items():
-        mx: HilbertParticleMaps | None = hil if sx is scans else HilbertParticleMaps(
-            basis, 1, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, wx, form="covariance")
+    for name, (wx, sx, s2e) in (extra or {}).items():
+        mx: HilbertParticleMaps | None = hil if sx is scans and s2e is None else HilbertParticleMaps(
+            basis, 1, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, wx, form="covariance",
+            endpoint_noise_variance=s2e)
         models[name] = (wx, sx, mx)
     own = {id(m): (m, sx) for _, sx, m in models.values() if m is not None}
     sums: dict[tuple[str, str], F64] = {}
@@ -211,6 +214,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, help="write the table as markdown here")
     ap.add_argument("--free-weight", type=float, nargs="*", default=[], help="extra rows: free-sample weight W")
     ap.add_argument("--free-clearance", type=float, nargs="*", default=[], help="extra rows: free clearance C (m)")
+    ap.add_argument("--endpoint-noise", type=float, nargs="*", default=[],
+                    help="extra rows: the endpoints' noise variance S2 in the map (free samples keep sigma_n^2)")
     ap.add_argument("--refine", action="store_true", help="also the refinement table (where Gauss-Newton ends)")
     a = ap.parse_args(argv)
     cfg = SlamConfig(workers=0)
@@ -222,9 +227,12 @@ def main(argv: list[str] | None = None) -> int:
     w = cfg.weighting("rich_slam")
     for name, load in cases:
         gt, scans = load()
-        extra = {f"hilbert_gp (free weight {fw:g})": (replace(w, free_weight=fw), scans) for fw in a.free_weight}
+        extra: dict[str, tuple[HilbertWeighting, Sequence[BeamSamples], float | None]] = {
+            f"hilbert_gp (free weight {fw:g})": (replace(w, free_weight=fw), scans, None) for fw in a.free_weight}
         for c in a.free_clearance:
-            extra[f"hilbert_gp (free clearance {c:g} m)"] = (w, load(c)[1])
+            extra[f"hilbert_gp (free clearance {c:g} m)"] = (w, load(c)[1], None)
+        for s2e in a.endpoint_noise:
+            extra[f"hilbert_gp (endpoint noise {s2e:g})"] = (w, scans, s2e)
         test = np.linspace(len(scans) // 2, len(scans) - 1, a.scans).round().astype(int).tolist()
         new = [(name, p) for p in profiles(gt, scans, test, cfg, extra=extra)]
         rows += new

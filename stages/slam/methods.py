@@ -76,6 +76,8 @@ class SlamConfig:
     refinement: PoseRefinement = field(default_factory=lambda: PoseRefinement(iterations=3))
     #: weight of the free samples' log terms against the endpoints' (1: the paper, eq. 23)
     free_weight: float = 1.0
+    #: sigma_n^2 of the endpoints' +1 labels in the map update (None: ``noise_variance`` for all, eq. 15)
+    endpoint_noise_variance: float | None = None
 
     def weighting(self, method: str) -> HilbertWeighting:
         return HilbertWeighting(
@@ -149,7 +151,8 @@ def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_pa
         partial(ParallelHilbertMaps, workers=cfg.workers) if cfg.workers > 0 else HilbertParticleMaps)
     return factory(basis, n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
                    cfg.weighting(method), update=cfg.map_update, dtype=np.dtype(cfg.dtype),
-                   laplace_iterations=cfg.laplace_iterations, form=form)
+                   laplace_iterations=cfg.laplace_iterations, form=form,
+                   endpoint_noise_variance=cfg.endpoint_noise_variance)
 
 
 Observer = Callable[[int, RBPF, int], None]
@@ -225,6 +228,8 @@ def _run_torch(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, form: Liter
         raise ValueError("the torch backend implements the Kalman map update; use backend = numpy for laplace")
     if method in REFINED_METHODS:
         raise ValueError(f"{method} (pose refinement) runs on the numpy backend only; set slam.backend = numpy")
+    if cfg.endpoint_noise_variance is not None:
+        raise ValueError("endpoint_noise_variance runs on the numpy backend only; set slam.backend = numpy")
     maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
                             cfg.weighting(method), dtype=cfg.dtype, form=form, device=device)
     f = TorchRBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold)
@@ -241,5 +246,6 @@ def map_along(
     for pose, s in zip(poses, scans, strict=True):
         if s.n:
             phi = hm.features(basis, to_world(pose, s.points))
-            theta, cov = hm.kalman_update(theta, cov, phi, s.labels, cfg.noise_variance, inplace=True)
+            theta, cov = hm.kalman_update(theta, cov, phi, s.labels, hm.label_noise_variance(
+                s.labels, cfg.noise_variance, cfg.endpoint_noise_variance), inplace=True)
     return theta, cov

@@ -46,6 +46,7 @@ class _Spec:
     update: str
     laplace_iterations: int
     form: str
+    endpoint_noise_variance: float | None
 
 
 def _attach(name: str, shape: tuple[int, ...], dtype: str) -> tuple[SharedMemory, npt.NDArray[Any]]:
@@ -64,7 +65,7 @@ def _worker_main(conn: Connection, spec: _Spec) -> None:
         update=spec.update,  # type: ignore[arg-type]
         dtype=spec.dtype, laplace_iterations=spec.laplace_iterations,
         form=spec.form,  # type: ignore[arg-type]
-        arrays=arrays,
+        arrays=arrays, endpoint_noise_variance=spec.endpoint_noise_variance,
     )
     try:
         while True:
@@ -103,6 +104,7 @@ class ParallelHilbertMaps:
         laplace_iterations: int = 20,
         workers: int = 2,
         form: Literal["information", "covariance"] = "information",
+        endpoint_noise_variance: float | None = None,
     ) -> None:
         self.basis = basis
         self.dtype = np.dtype(dtype)
@@ -142,7 +144,7 @@ class ParallelHilbertMaps:
             for lo, hi in itertools.pairwise(bounds):
                 spec = _Spec(tuple(b.name for b in self._shm), n_particles, M, self.dtype.name, int(lo), int(hi),
                              basis, lengthscale, signal_variance, noise_variance, weighting, update,
-                             laplace_iterations, form)
+                             laplace_iterations, form, endpoint_noise_variance)
                 parent, child = ctx.Pipe()
                 proc = ctx.Process(target=_worker_main, args=(child, spec), daemon=True)
                 proc.start()

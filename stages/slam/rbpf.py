@@ -366,11 +366,14 @@ class HilbertParticleMaps:
         laplace_iterations: int = 20,
         form: Literal["information", "covariance"] = "information",
         arrays: tuple[F64, ...] | None = None,
+        endpoint_noise_variance: float | None = None,
     ) -> None:
         """``arrays``: existing stacks to work on in place: ``(theta, info, eta)`` (information form) or
-        ``(theta, cov)`` (covariance form, lower triangles)."""
+        ``(theta, cov)`` (covariance form, lower triangles). ``endpoint_noise_variance``: sigma_n^2 of the
+        +1 samples (the free samples keep ``noise_variance``); None: one value for both, as in eq. 15."""
         self.basis = basis
         self.noise_variance = noise_variance
+        self.endpoint_noise_variance = endpoint_noise_variance
         self.weighting = weighting
         self.update_kind = update
         self.laplace_iterations = laplace_iterations
@@ -420,6 +423,11 @@ class HilbertParticleMaps:
             return theta, hm.covariance_from_information(L)
         assert self.cstack is not None
         return self.theta[k].astype(np.float64), self.cstack.full(k)
+
+    def row_noise(self, labels: F64) -> F64 | float:
+        """sigma_n^2 of each sample (eq. 15's noise): per label when ``endpoint_noise_variance`` is set."""
+        s2 = hm.label_noise_variance(labels, self.noise_variance, self.endpoint_noise_variance)
+        return s2 if isinstance(s2, float) else s2.astype(self.dtype)
 
     def _cached(self, poses: F64, samples: BeamSamples) -> tuple[Any, ...] | None:
         """The cached products of this scan at these poses, if any."""
@@ -511,7 +519,8 @@ class HilbertParticleMaps:
         """
         if samples.n == 0:
             return np.zeros(len(poses))
-        if self.stack is None or self.update_kind != "kalman":
+        if self.stack is None or self.update_kind != "kalman" or self.endpoint_noise_variance is not None:
+            # per-label noise: the fused pass takes one gram scale, so weigh, then update
             ll = self.log_likelihood(poses, samples)
             self.update(poses, samples)
             return ll
@@ -551,7 +560,7 @@ class HilbertParticleMaps:
         if self.update_kind == "kalman":
             S = np.matmul(A, np.swapaxes(phi, -1, -2)).astype(np.float64)
             S = 0.5 * (S + np.swapaxes(S, -1, -2))
-            S[:, np.arange(n), np.arange(n)] += self.noise_variance
+            S[:, np.arange(n), np.arange(n)] += self.row_noise(labels)
             Rinv = np.linalg.inv(np.linalg.cholesky(S)).astype(self.dtype)
             W = np.matmul(Rinv, A)
             innov = labels - np.einsum("knm,km->kn", phi, self.theta)
@@ -570,12 +579,12 @@ class HilbertParticleMaps:
         st.downdate(W)
 
     def _update_information(self, st: StackedInformation, poses: F64, samples: BeamSamples, labels: F64) -> None:
-        s2 = self.noise_variance
         if self.update_kind == "kalman":
             # eq. 15-19 in information form: Y += H H^T / s2, eta += H z / s2 (then theta = Y^-1 eta)
+            s2 = self.row_noise(labels)
             c = self._cached(poses, samples)
             phi = c[0] if c is not None else hm.features(self.basis, to_world(poses, samples.points), dtype=self.dtype)
-            st.add(phi, 1.0 / s2, np.broadcast_to(labels / s2, phi.shape[:2]))
+            st.add(phi, np.broadcast_to(1.0 / s2, phi.shape[:2]), np.broadcast_to(labels / s2, phi.shape[:2]))
             return
         # Appendix: mode on the latent values with K = X X^T (X = L^-1 H) and prior mean m = H^T theta;
         # theta' = theta + cov H a and Y' = Y + H W H^T give eta' = eta + H (a + W m + W K a)

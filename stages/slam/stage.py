@@ -59,6 +59,9 @@ class SlamParams(StageParams):
                                  "(README: decimetres reproduce the paper's maps; 1.0 = literal metres)")
     signal_variance: float = Field(16.0, gt=0, description="sigma_f^2 (Table II: 16 ColoRadar, 0.7 ARS548)")
     noise_variance: float = Field(0.36, gt=0, description="sigma_n^2 (Table II: 0.36 ColoRadar, 0.1 ARS548)")
+    endpoint_noise_variance: float | None = Field(
+        None, gt=0, description="sigma_n^2 of the endpoints' +1 labels in the map update (free samples keep "
+        "noise_variance); unset: one value, the paper (issue 17 lever; measured in stages/slam/README.md)")
     n_basis: int = Field(256, ge=1, description="basis functions M (a perfect square for the tensor basis)")
     basis_kind: Literal["tensor", "circular"] = Field("tensor", description="'tensor': eq. 7; 'circular': the M "
                                                       "smallest eigenvalues (Solin and Sarkka's code)")
@@ -154,6 +157,9 @@ class SlamParams(StageParams):
         if self.backend == "torch" and refined:
             raise ValueError(f"{', '.join(refined)} (pose refinement) runs on the numpy backend only: set "
                              "slam.backend = numpy or leave it out of slam.methods")
+        if self.backend == "torch" and self.endpoint_noise_variance is not None:
+            raise ValueError("endpoint_noise_variance (per-label map noise) runs on the numpy backend only: set "
+                             "slam.backend = numpy or leave endpoint_noise_variance unset")
         if self.backend == "numpy" and self.device == "cuda":
             raise ValueError("device = cuda needs backend = torch (the numpy backend runs on the cpu)")
         return self
@@ -175,7 +181,7 @@ class SlamParams(StageParams):
             grid_resolution=self.grid_resolution, estimate=self.estimate,
             refinement=PoseRefinement(self.refine_iterations, self.refine_max_step_xy, self.refine_max_step_yaw,
                                       self.refine_covariance_scale, self.refine_objective, self.noise_variance),
-            free_weight=self.free_weight,
+            free_weight=self.free_weight, endpoint_noise_variance=self.endpoint_noise_variance,
         )
 
 
@@ -366,7 +372,8 @@ class MapTracker:
         for i, (pose, s) in enumerate(zip(poses, self.samples, strict=True)):
             if s.n:
                 phi = hm.features(self.basis, to_world(pose, s.points))
-                theta, cov = hm.kalman_update(theta, cov, phi, s.labels, self.cfg.noise_variance, inplace=True)
+                theta, cov = hm.kalman_update(theta, cov, phi, s.labels, hm.label_noise_variance(
+                    s.labels, self.cfg.noise_variance, self.cfg.endpoint_noise_variance), inplace=True)
             self._observe_map(i, pose, theta, cov)
         return theta, cov
 

@@ -8,6 +8,7 @@ finishes and skips the ones already there: stop it at any point and run the same
     python -m stages.slam.table3 RUNS/SEQ [RUNS/SEQ ...] --methods odometry,fastslam_grid,rich_slam \\
         --seeds 0,1,2 --set n_particles=200 --out table3.jsonl
     python -m stages.slam.table3 --table table3.jsonl         # the markdown table: mean, spread, seeds
+    python -m stages.slam.table3 --table table3.jsonl --figure table3.png   # and the figure (one panel a sequence)
 
 Errors are position RMSE [m] / yaw RMSE [deg] after the SE(2) alignment on the first 100 matched frames
 (the evaluate stage's ``evaluate_trajectory``). ``--set`` takes the slam stage's parameters (JSON values).
@@ -115,6 +116,16 @@ def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = ()) -> str:
     return "\n".join(lines)
 
 
+def by_sequence(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, list[tuple[float, float]]]]:
+    """``{sequence: {method: [(position RMSE, yaw RMSE) per seed]}}`` in the rows' order (odometry once)."""
+    out: dict[str, dict[str, list[tuple[float, float]]]] = {}
+    for r in rows:
+        cell = out.setdefault(r["seq"], {}).setdefault(r["method"], [])
+        if not (r["method"] == "odometry" and cell):  # the odometry does not depend on the seed
+            cell.append((float(r["pos_rmse_m"]), float(r["yaw_rmse_deg"])))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("runs", nargs="*", type=Path, help="run folders <runs>/<seq> with ingest/, filter/, odometry/")
@@ -123,10 +134,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="PARAM=JSON", help="a slam stage parameter")
     ap.add_argument("--out", type=Path, default=Path("table3.jsonl"))
     ap.add_argument("--table", type=Path, help="print the markdown table of this results file and exit")
+    ap.add_argument("--figure", type=Path, help="with --table: also draw it into this PNG")
     a = ap.parse_args(argv)
     if a.table:
         rows = [json.loads(line) for line in a.table.read_text().splitlines() if line.strip()]
         print(table(rows))
+        if a.figure:
+            from stages.evaluate.figures import plot_table3
+
+            tmp = a.figure.with_name(a.figure.name + ".tmp.png")
+            plot_table3(tmp, by_sequence(rows))
+            os.replace(tmp, a.figure)
+            print(f"wrote {a.figure}")
         return 0
     overrides: dict[str, Any] = {}
     for item in a.set:
