@@ -8,14 +8,15 @@ weight with the variance (eq. 28, 30), without it (mean only), and the FastSLAM 
 field, each averaged over several test scans.
 
     python -m stages.slam.likelihood_profile [RUN_DIR ...] [--scans 8] [--out table.md]
-        [--free-weight W ...] [--free-clearance C ...] [--endpoint-noise S2 ...] [--refine]
+        [--free-weight W ...] [--free-clearance C ...] [--ray-step R ...] [--endpoint-noise S2 ...] [--refine]
 
-``--free-weight`` / ``--free-clearance`` / ``--endpoint-noise`` add rows for the Hilbert weight with the free
-samples' log terms weighted by W, with no free sample within C metres of the endpoint, or with a map whose
-endpoints (+1 samples) have the noise variance S2 instead of sigma_n^2 (issue 17's levers inside the
-paper's model). ``--refine`` adds the refinement table: where Gauss-Newton on each objective of
-:mod:`pose_refinement` takes the test scans from the true pose and from offsets of it, with a prior too
-wide to hold them (the map's own optimum; a good objective stays near zero).
+``--free-weight`` / ``--free-clearance`` / ``--ray-step`` / ``--endpoint-noise`` add rows for the Hilbert
+weight with the free samples' log terms weighted by W, with no free sample within C metres of the endpoint,
+with a free sample every R metres along the beam (Table II: 1 m), or with a map whose endpoints (+1
+samples) have the noise variance S2 instead of sigma_n^2 (issue 17's levers inside the paper's model).
+``--refine`` adds the refinement table: where Gauss-Newton on each objective of :mod:`pose_refinement` takes
+the test scans from the true pose and from offsets of it, with a prior too wide to hold them (the map's own
+optimum; a good objective stays near zero).
 
 Without RUN_DIR it profiles the synthetic corridor (``synthetic.py``); a run folder needs ``ingest/``
 and ``filter/`` (ground-truth poses at the radar scan times).
@@ -168,12 +169,13 @@ def refinement_bias(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], 
     return rows
 
 
-def synthetic_case(n_scans: int = 300, seed: int = 1, free_clearance: float = 0.0) -> tuple[F64, list[BeamSamples]]:
+def synthetic_case(n_scans: int = 300, seed: int = 1, free_clearance: float = 0.0, ray_step: float = 1.0,
+                   ) -> tuple[F64, list[BeamSamples]]:
     """Ground truth and beam samples of the synthetic corridor (25 beams per scan)."""
     from stages.slam.synthetic import make_run
 
     run = make_run(n_scans, np.random.default_rng(seed))
-    return run.groundtruth, [sample_beams(p, np.zeros(2), 1.0, 5.0, 0.0, free_clearance) for p in run.scans]
+    return run.groundtruth, [sample_beams(p, np.zeros(2), ray_step, 5.0, 0.0, free_clearance) for p in run.scans]
 
 
 def run_folder_case(run_dir: Path, max_range: float = 5.0, ray_step: float = 1.0, free_clearance: float = 0.0,
@@ -214,14 +216,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, help="write the table as markdown here")
     ap.add_argument("--free-weight", type=float, nargs="*", default=[], help="extra rows: free-sample weight W")
     ap.add_argument("--free-clearance", type=float, nargs="*", default=[], help="extra rows: free clearance C (m)")
+    ap.add_argument("--ray-step", type=float, nargs="*", default=[], help="extra rows: a free sample every R m")
     ap.add_argument("--endpoint-noise", type=float, nargs="*", default=[],
                     help="extra rows: the endpoints' noise variance S2 in the map (free samples keep sigma_n^2)")
     ap.add_argument("--refine", action="store_true", help="also the refinement table (where Gauss-Newton ends)")
     a = ap.parse_args(argv)
     cfg = SlamConfig(workers=0)
-    cases: list[tuple[str, Any]] = [(r.name, lambda c=0.0, r=r: run_folder_case(r, free_clearance=c)) for r in a.runs]
+    cases: list[tuple[str, Any]] = [
+        (r.name, lambda c=0.0, step=1.0, r=r: run_folder_case(r, free_clearance=c, ray_step=step)) for r in a.runs]
     if not cases:
-        cases = [("synthetic corridor", lambda c=0.0: synthetic_case(free_clearance=c))]
+        cases = [("synthetic corridor", lambda c=0.0, step=1.0: synthetic_case(free_clearance=c, ray_step=step))]
     rows: list[tuple[str, Profile]] = []
     refine_rows: list[str] = []
     w = cfg.weighting("rich_slam")
@@ -231,6 +235,8 @@ def main(argv: list[str] | None = None) -> int:
             f"hilbert_gp (free weight {fw:g})": (replace(w, free_weight=fw), scans, None) for fw in a.free_weight}
         for c in a.free_clearance:
             extra[f"hilbert_gp (free clearance {c:g} m)"] = (w, load(c)[1], None)
+        for step in a.ray_step:
+            extra[f"hilbert_gp (ray step {step:g} m)"] = (w, load(step=step)[1], None)
         for s2e in a.endpoint_noise:
             extra[f"hilbert_gp (endpoint noise {s2e:g})"] = (w, scans, s2e)
         test = np.linspace(len(scans) // 2, len(scans) - 1, a.scans).round().astype(int).tolist()
