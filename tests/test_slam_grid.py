@@ -91,3 +91,24 @@ def test_likelihood_profiles_prefer_the_true_pose() -> None:
         if p.model == "fastslam_grid" or p.axis != "yaw":
             assert abs(p.peak) <= (2.0 if p.axis == "yaw" else 0.3), (p.model, p.axis, p.peak)
             assert p.drop_at(5.0 if p.axis == "yaw" else 0.5) > 0.1, (p.model, p.axis)
+
+
+def test_profile_extra_rows_endpoint_noise_and_ray_step() -> None:
+    """Issue 17's levers as extra profile rows: an endpoint noise equal to sigma_n^2 is the paper's map (same
+    profile), another value changes it; a finer ray step adds free samples to every scan."""
+    from stages.slam.likelihood_profile import profiles, synthetic_case
+    from stages.slam.methods import SlamConfig
+
+    gt, scans = synthetic_case(n_scans=120)
+    _, fine = synthetic_case(n_scans=120, ray_step=0.5)
+    assert sum(s.n for s in fine) > 1.5 * sum(s.n for s in scans)
+    assert [len(s.endpoints) for s in fine] == [len(s.endpoints) for s in scans]
+    cfg = SlamConfig(workers=0)
+    w = cfg.weighting("rich_slam")
+    out = {(p.model, p.axis): p for p in profiles(gt, scans, [80, 110], cfg, padding=3.0, extra={
+        "same": (w, scans, cfg.noise_variance), "stiff": (w, scans, 0.09), "fine": (w, fine, None)})}
+    for axis in ("forward", "lateral", "yaw"):
+        paper = out[("hilbert_gp (variance, ET)", axis)].loglik
+        np.testing.assert_allclose(out[("same", axis)].loglik, paper, atol=1e-8)
+        assert np.abs(out[("stiff", axis)].loglik - paper).max() > 1e-3
+        assert np.abs(out[("fine", axis)].loglik - paper).max() > 1e-3
