@@ -20,7 +20,6 @@ import argparse
 import json
 import os
 import time
-from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -93,29 +92,6 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                   f"({row['s_per_scan']:.3f} s/scan)", flush=True)
 
 
-def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = ()) -> str:
-    """Markdown: per method and sequence, mean position / yaw RMSE over seeds, +- half the range, seeds."""
-    d: dict[tuple[str, str], list[tuple[float, float]]] = defaultdict(list)
-    for r in rows:
-        d[(r["seq"], r["method"])].append((float(r["pos_rmse_m"]), float(r["yaw_rmse_deg"])))
-    seqs = list(dict.fromkeys(r["seq"] for r in rows))
-    ms = list(dict.fromkeys([*methods, *(r["method"] for r in rows)]))
-    lines = ["| method | " + " | ".join(seqs) + " |", "|---|" + "---|" * len(seqs)]
-    for m in ms:
-        cells = []
-        for s in seqs:
-            v = np.asarray(d.get((s, m), []))
-            if not len(v):
-                cells.append("–")
-            elif len(v) == 1 or m == "odometry":  # the odometry does not depend on the seed
-                cells.append(f"{v[0, 0]:.2f} / {v[0, 1]:.2f}" + ("" if m == "odometry" else " (1 seed)"))
-            else:
-                h = (v.max(0) - v.min(0)) / 2
-                cells.append(f"{v[:, 0].mean():.2f} ± {h[0]:.2f} / {v[:, 1].mean():.2f} ± {h[1]:.2f} ({len(v)})")
-        lines.append(f"| {m} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
-
-
 def by_sequence(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, list[tuple[float, float]]]]:
     """``{sequence: {method: [(position RMSE, yaw RMSE) per seed]}}`` in the rows' order (odometry once)."""
     out: dict[str, dict[str, list[tuple[float, float]]]] = {}
@@ -124,6 +100,27 @@ def by_sequence(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, list[tupl
         if not (r["method"] == "odometry" and cell):  # the odometry does not depend on the seed
             cell.append((float(r["pos_rmse_m"]), float(r["yaw_rmse_deg"])))
     return out
+
+
+def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = ()) -> str:
+    """Markdown: per method and sequence, mean position / yaw RMSE over seeds, +- half the range, seeds."""
+    d = by_sequence(rows)
+    seqs = list(d)
+    ms = list(dict.fromkeys([*methods, *(r["method"] for r in rows)]))
+    lines = ["| method | " + " | ".join(seqs) + " |", "|---|" + "---|" * len(seqs)]
+    for m in ms:
+        cells = []
+        for s in seqs:
+            v = np.asarray(d[s].get(m, []))
+            if not len(v):
+                cells.append("–")
+            elif len(v) == 1:
+                cells.append(f"{v[0, 0]:.2f} / {v[0, 1]:.2f}" + ("" if m == "odometry" else " (1 seed)"))
+            else:
+                h = (v.max(0) - v.min(0)) / 2
+                cells.append(f"{v[:, 0].mean():.2f} ± {h[0]:.2f} / {v[:, 1].mean():.2f} ± {h[1]:.2f} ({len(v)})")
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
