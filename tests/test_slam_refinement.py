@@ -118,3 +118,38 @@ def test_refined_method_without_iterations_is_the_papers_filter() -> None:
     np.testing.assert_array_equal(a.poses, b.poses)
     on = run_method("rich_slam_refined", run.odometry, scans, basis, replace(cfg, refinement=PoseRefinement(3)), seed=3)
     assert np.all(np.isfinite(on.poses)) and not np.array_equal(on.poses, b.poses)
+
+
+def test_stage_parameters_reach_the_refinement_by_name() -> None:
+    """Every refinement setting of the stage lands in its own field (a positional call once put the map's
+    noise variance into ``free_weight``)."""
+    from stages.slam.stage import SlamParams
+
+    r = SlamParams(free_weight=0.7, noise_variance=0.25, endpoint_noise_variance=0.09, refine_iterations=5,
+                   refine_max_step_xy=0.3, refine_max_step_yaw=0.02, refine_objective="gaussian",
+                   refine_covariance_scale=2.0).config().refinement
+    assert r == PoseRefinement(iterations=5, max_step_xy=0.3, max_step_yaw=0.02, covariance_scale=2.0,
+                               objective="gaussian", free_weight=0.7, noise_variance=0.25,
+                               endpoint_noise_variance=0.09)
+
+
+def test_gaussian_refinement_weighs_each_label_with_its_own_noise() -> None:
+    """With per-label noise the Gauss-Newton Hessian is sum_j (c_j / s2_j) J_j J_j^T + prior, and a
+    single noise value equal for both labels gives the one-value objective."""
+    rng = np.random.default_rng(5)
+    basis = hm.make_basis([8.0, 8.0], [0.0, 0.0], 64)
+    theta = rng.standard_normal((3, 64))
+    poses = rng.uniform(-1, 1, (3, 3))
+    s = sample_beams(rng.uniform(-4, 4, (12, 2)), np.zeros(2), 1.0, 5.0)
+    var = np.array([1.0, 1.0, 0.1])
+    _, J = mean_and_pose_jacobian(basis, theta, poses, s.points)
+    s2 = np.where(s.labels > 0, 0.09, 0.36)
+    expected = np.einsum("n,knd,kne->kde", 1.0 / s2, J, J) + np.diag(1.0 / var)
+    per_label = PoseRefinement(objective="gaussian", noise_variance=0.36, endpoint_noise_variance=0.09)
+    _, A = refine(basis, theta, poses, var, s, per_label)  # iterations = 0: the Hessian at the start
+    np.testing.assert_allclose(A, expected, rtol=1e-10)
+    _, A1 = refine(basis, theta, poses, var, s, PoseRefinement(objective="gaussian", noise_variance=0.36))
+    _, A2 = refine(basis, theta, poses, var, s, PoseRefinement(objective="gaussian", noise_variance=0.36,
+                                                               endpoint_noise_variance=0.36))
+    np.testing.assert_allclose(A1, A2, rtol=1e-12)
+    assert not np.allclose(A, A1)

@@ -51,6 +51,8 @@ class PoseRefinement:
     free_weight: float = 1.0
     #: sigma_n^2 of the Gaussian term (the map's noise variance; set by the method from the map settings)
     noise_variance: float = 0.36
+    #: sigma_n^2 of the endpoints' terms when the map gives its +1 labels their own (None: ``noise_variance``)
+    endpoint_noise_variance: float | None = None
 
     @property
     def enabled(self) -> bool:
@@ -89,10 +91,12 @@ def _objective_terms(basis: hm.HilbertBasis, theta: F64, x: F64, samples: BeamSa
     y = np.where(samples.labels > 0, 1.0, -1.0)
     c = np.where(samples.labels > 0, exponent, exponent * settings.free_weight)  # per-sample weight
     if settings.objective == "gaussian":
+        # the map's own per-label sigma_n^2 (eq. 15), so that the refinement fits the model the map was fit with
+        c = c / hm.label_noise_variance(samples.labels, settings.noise_variance, settings.endpoint_noise_variance)
         res = y - m
-        value = -0.5 * np.sum(c * res * res, axis=1) / settings.noise_variance
-        r = c * res / settings.noise_variance  # d/dm of -c (y - m)^2 / (2 s2)
-        w = np.broadcast_to(c / settings.noise_variance, m.shape)  # exact Gauss-Newton weight
+        value = -0.5 * np.sum(c * res * res, axis=1)
+        r = c * res  # d/dm of -c (y - m)^2 / 2, c = weight / s2
+        w = np.broadcast_to(c, m.shape)  # exact Gauss-Newton weight
     else:
         ym = y * m
         value = np.sum(c * hm.log_sigmoid(ym), axis=1)

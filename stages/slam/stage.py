@@ -179,8 +179,11 @@ class SlamParams(StageParams):
             grid=GridModel(self.grid_l_occ, self.grid_l_free, -self.grid_l_clamp, self.grid_l_clamp, 0.0,
                            self.grid_sigma_hit, self.grid_max_dist, self.grid_z_hit, self.grid_z_rand),
             grid_resolution=self.grid_resolution, estimate=self.estimate,
-            refinement=PoseRefinement(self.refine_iterations, self.refine_max_step_xy, self.refine_max_step_yaw,
-                                      self.refine_covariance_scale, self.refine_objective, self.noise_variance),
+            refinement=PoseRefinement(
+                iterations=self.refine_iterations, max_step_xy=self.refine_max_step_xy,
+                max_step_yaw=self.refine_max_step_yaw, covariance_scale=self.refine_covariance_scale,
+                objective=self.refine_objective, free_weight=self.free_weight, noise_variance=self.noise_variance,
+                endpoint_noise_variance=self.endpoint_noise_variance),
             free_weight=self.free_weight, endpoint_noise_variance=self.endpoint_noise_variance,
         )
 
