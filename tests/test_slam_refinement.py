@@ -131,6 +131,9 @@ def test_stage_parameters_reach_the_refinement_by_name() -> None:
     assert r == PoseRefinement(iterations=5, max_step_xy=0.3, max_step_yaw=0.02, covariance_scale=2.0,
                                objective="gaussian", free_weight=0.7, noise_variance=0.25,
                                endpoint_noise_variance=0.09)
+    # the refinement's own free weight, when set, leaves the weights' alone
+    p = SlamParams(free_weight=0.7, refine_free_weight=0.36)
+    assert p.config().refinement.free_weight == 0.36 and p.config().free_weight == 0.7
 
 
 def test_gaussian_refinement_weighs_each_label_with_its_own_noise() -> None:

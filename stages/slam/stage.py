@@ -112,6 +112,9 @@ class SlamParams(StageParams):
         "+-1 labels (least squares on y - m / sigma_n) or eq. 28's mean-only logistic term")
     refine_covariance_scale: float = Field(1.0, gt=0, description="rich_slam_refined: the proposal is N(refined "
                                            "pose, this * inverse Gauss-Newton Hessian)")
+    refine_free_weight: float | None = Field(
+        None, ge=0, description="rich_slam_refined: weight of the free samples' terms against the endpoints' in the "
+        "refinement objective only (unset: free_weight, the weights' own)")
     # -- particles (Sec. IV-D1, D3)
     motion_std_xy: float = Field(0.002, ge=0, description="process noise std on x and y per scan (m, eq. 21)")
     motion_std_yaw: float = Field(0.0005, ge=0, description="process noise std on yaw per scan (rad, eq. 21)")
@@ -182,7 +185,9 @@ class SlamParams(StageParams):
             refinement=PoseRefinement(
                 iterations=self.refine_iterations, max_step_xy=self.refine_max_step_xy,
                 max_step_yaw=self.refine_max_step_yaw, covariance_scale=self.refine_covariance_scale,
-                objective=self.refine_objective, free_weight=self.free_weight, noise_variance=self.noise_variance,
+                objective=self.refine_objective,
+                free_weight=self.free_weight if self.refine_free_weight is None else self.refine_free_weight,
+                noise_variance=self.noise_variance,
                 endpoint_noise_variance=self.endpoint_noise_variance),
             free_weight=self.free_weight, endpoint_noise_variance=self.endpoint_noise_variance,
         )
