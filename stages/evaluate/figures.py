@@ -196,11 +196,13 @@ def plot_query_resolutions(path: Path, panels: Sequence[tuple[float, F64, F64, F
 
 
 def plot_table3(path: Path, results: Mapping[str, Mapping[str, Sequence[tuple[float, float]]]],
-                title: str = "", per_row: int = 5) -> Path:
+                title: str = "", per_row: int = 5,
+                paper: Mapping[str, Mapping[str, tuple[float, float]]] | None = None) -> Path:
     """RICH-SLAM Table III over seeds: one panel per sequence, a bar per method at its mean yaw RMSE
     with one dot per seed, and the mean position RMSE written on the bar.
 
-    ``results[sequence][method]`` are the seeds' ``(position RMSE m, yaw RMSE deg)``.
+    ``results[sequence][method]`` are the seeds' ``(position RMSE m, yaw RMSE deg)``; ``paper[sequence][method]``
+    (optional) the published ``(position, yaw)`` of that method's counterpart, drawn as a black bar mark.
     """
     plt = _plt()
     seqs = list(results)
@@ -210,18 +212,29 @@ def plot_table3(path: Path, results: Mapping[str, Mapping[str, Sequence[tuple[fl
     for ax in axes.ravel()[len(seqs):]:
         ax.set_visible(False)
     for ax, seq in zip(axes.ravel(), seqs, strict=False):
-        methods = list(results[seq])
+        order = list(METHOD_LABELS)  # one method order in every panel (unknown methods last)
+        methods = sorted(results[seq], key=lambda m: order.index(m) if m in order else len(order))
+        marks = (paper or {}).get(seq, {})
+        labelled = False
         for i, m in enumerate(methods):
             v = np.asarray(results[seq][m], dtype=np.float64).reshape(-1, 2)
             ax.bar(i, v[:, 1].mean(), color=colour(m), alpha=0.55, width=0.75)
             ax.plot(np.full(len(v), float(i)), v[:, 1], "o", color=colour(m), ms=3.5, mec="black", mew=0.4)
             ax.text(i, 0.0, f"{v[:, 0].mean():.2f} m", ha="center", va="bottom", fontsize=6.5, rotation=90)
+            pub = marks.get(m)
+            if pub is not None:
+                ax.plot([i - 0.38, i + 0.38], [pub[1], pub[1]], color="black", lw=1.6,
+                        label=None if labelled else "paper")
+                labelled = True
         ax.set_xticks(range(len(methods)), [METHOD_LABELS.get(m, m) for m in methods], rotation=40,
                       ha="right", fontsize=7)
         ax.set_title(seq, fontsize=9)
         ax.set_ylabel("yaw RMSE [deg]", fontsize=8)
         ax.grid(axis="y", alpha=0.3)
-    fig.suptitle(title or "Table III: yaw RMSE (bar: mean over seeds, dots: seeds; text: position RMSE)",
+        if labelled:
+            ax.legend(fontsize=6.5, loc="best")
+    fig.suptitle(title or "Table III: yaw RMSE (bar: mean over seeds, dots: seeds; text: position RMSE"
+                 + ("; black line: the paper's value" if paper else "") + ")",
                  fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)

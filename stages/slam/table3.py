@@ -9,6 +9,7 @@ finishes and skips the ones already there: stop it at any point and run the same
         --seeds 0,1,2 --set n_particles=200 --out table3.jsonl
     python -m stages.slam.table3 --table table3.jsonl         # the markdown table: mean, spread, seeds
     python -m stages.slam.table3 --table table3.jsonl --figure table3.png   # and the figure (one panel a sequence)
+    python -m stages.slam.table3 --table table3.jsonl --paper               # the twins beside the paper's Table III
 
 Errors are position RMSE [m] / yaw RMSE [deg] after the SE(2) alignment on the first 100 matched frames
 (the evaluate stage's ``evaluate_trajectory``). ``--set`` takes the slam stage's parameters (JSON values).
@@ -27,10 +28,17 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from stages.evaluate.rich_slam_paper import (
+    COUNTERPART,
+    PAPER_METHODS,
+    PAPER_SEQUENCES,
+    TABLE_III,
+    paper_sequence,
+)
 from stages.evaluate.trajectory import evaluate_trajectory, quat_to_yaw
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.methods import domain_from_trajectory, run_method
+from stages.slam.methods import METHODS, domain_from_trajectory, run_method
 from stages.slam.stage import SlamParams, beam_samples_by_scan, read_odometry_file
 from stages.slam.unit_study import read_run_folder
 
@@ -102,6 +110,17 @@ def by_sequence(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, list[tupl
     return out
 
 
+def cell(seeds: Sequence[tuple[float, float]], method: str) -> str:
+    """One table cell: mean position / yaw RMSE over the seeds, +- half the range, and the seed count."""
+    v = np.asarray(seeds, dtype=np.float64).reshape(-1, 2)
+    if not len(v):
+        return "–"
+    if len(v) == 1:
+        return f"{v[0, 0]:.2f} / {v[0, 1]:.2f}" + ("" if method == "odometry" else " (1 seed)")
+    h = (v.max(0) - v.min(0)) / 2
+    return f"{v[:, 0].mean():.2f} ± {h[0]:.2f} / {v[:, 1].mean():.2f} ± {h[1]:.2f} ({len(v)})"
+
+
 def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = ()) -> str:
     """Markdown: per method and sequence, mean position / yaw RMSE over seeds, +- half the range, seeds."""
     d = by_sequence(rows)
@@ -109,18 +128,43 @@ def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = ()) -> str:
     ms = list(dict.fromkeys([*methods, *(r["method"] for r in rows)]))
     lines = ["| method | " + " | ".join(seqs) + " |", "|---|" + "---|" * len(seqs)]
     for m in ms:
-        cells = []
-        for s in seqs:
-            v = np.asarray(d[s].get(m, []))
-            if not len(v):
-                cells.append("–")
-            elif len(v) == 1:
-                cells.append(f"{v[0, 0]:.2f} / {v[0, 1]:.2f}" + ("" if m == "odometry" else " (1 seed)"))
-            else:
-                h = (v.max(0) - v.min(0)) / 2
-                cells.append(f"{v[:, 0].mean():.2f} ± {h[0]:.2f} / {v[:, 1].mean():.2f} ± {h[1]:.2f} ({len(v)})")
-        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        lines.append(f"| {m} | " + " | ".join(cell(d[s].get(m, []), m) for s in seqs) + " |")
     return "\n".join(lines)
+
+
+def paper_table(rows: Sequence[dict[str, Any]]) -> str:
+    """Markdown, a line per sequence that Table III has (the ColoRadar twins): our methods' cells, then the
+    paper's rows for the same sequence (``stages.evaluate.rich_slam_paper``). Empty when none has one."""
+    d = {s: cells for s, cells in by_sequence(rows).items() if paper_sequence(s)}
+    d = dict(sorted(d.items(), key=lambda kv: _paper_rank(kv[0])))
+    if not d:
+        return ""
+    seen = dict.fromkeys(m for cells in d.values() for m in cells)
+    ms = sorted(seen, key=lambda m: METHODS.index(m) if m in METHODS else len(METHODS))
+    head = ["sequence", *ms, *(f"paper {m}" for m in PAPER_METHODS)]
+    lines = ["| " + " | ".join(head) + " |", "|---|" + "---|" * (len(head) - 1)]
+    for s, cells in d.items():
+        col = paper_sequence(s)
+        assert col is not None
+        paper = [f"{p:.2f} / {y:.2f}" for p, y in (TABLE_III[col][m] for m in PAPER_METHODS)]
+        lines.append(f"| {col} ({s}) | " + " | ".join([*(cell(cells.get(m, []), m) for m in ms), *paper]) + " |")
+    return "\n".join(lines)
+
+
+def _paper_rank(seq: str) -> int:
+    """Sort key: sequences without a Table III column first (stable), then the paper's column order."""
+    col = paper_sequence(seq)
+    return -1 if col is None else PAPER_SEQUENCES.index(col)
+
+
+def paper_marks(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, tuple[float, float]]]:
+    """``{sequence: {our method: the paper's (position, yaw) for it}}`` for the figure's marks."""
+    out: dict[str, dict[str, tuple[float, float]]] = {}
+    for s, cells in by_sequence(rows).items():
+        col = paper_sequence(s)
+        if col is not None:
+            out[s] = {m: TABLE_III[col][COUNTERPART[m]] for m in cells if m in COUNTERPART}
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -132,15 +176,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("table3.jsonl"))
     ap.add_argument("--table", type=Path, help="print the markdown table of this results file and exit")
     ap.add_argument("--figure", type=Path, help="with --table: also draw it into this PNG")
+    ap.add_argument("--paper", action="store_true", help="with --table: also the ColoRadar twins beside the paper's "
+                    "Table III (a line per twin; in the figure, a mark at the paper's value of each method)")
     a = ap.parse_args(argv)
     if a.table:
         rows = [json.loads(line) for line in a.table.read_text().splitlines() if line.strip()]
         print(table(rows))
+        if a.paper:
+            print("\n" + (paper_table(rows) or "(no sequence of the paper's Table III in these rows)"))
         if a.figure:
             from stages.evaluate.figures import plot_table3
 
             tmp = a.figure.with_name(a.figure.name + ".tmp.png")
-            plot_table3(tmp, by_sequence(rows))
+            results = by_sequence(rows)
+            if a.paper:  # the twins after the other sequences, in the paper's order
+                results = dict(sorted(results.items(), key=lambda kv: _paper_rank(kv[0])))
+            plot_table3(tmp, results, paper=paper_marks(rows) if a.paper else None)
             os.replace(tmp, a.figure)
             print(f"wrote {a.figure}")
         return 0

@@ -1,0 +1,60 @@
+"""RICH-SLAM's Table III as data: transcribed values checked against the paper's text, and the
+table3 runner's side-by-side table of the ColoRadar twins."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from stages.evaluate.rich_slam_paper import PAPER_METHODS, PAPER_SEQUENCES, TABLE_III, paper_sequence
+from stages.slam import table3
+
+PAPER = Path(__file__).resolve().parents[1].parent / "shared" / "papers" / "rich-slam.md"
+
+
+def test_table_iii_matches_the_papers_text() -> None:
+    if not PAPER.is_file():
+        pytest.skip(f"{PAPER} not found: the shared folder beside the clone (../shared) holds the paper")
+    lines = PAPER.read_text().splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("TABLE III"))
+    parsed: dict[str, list[tuple[float, float]]] = {}
+    for line in lines[start + 1 : start + 12]:
+        name, *cells = line.split("\t")
+        if name in PAPER_METHODS:
+            pairs = [re.findall(r"\d+\.\d+", c) for c in cells]  # underlines (<u>..</u>) are markup only
+            parsed[name] = [(float(p), float(y)) for p, y in pairs]
+    assert set(parsed) == set(PAPER_METHODS)
+    for m in PAPER_METHODS:
+        assert parsed[m] == [TABLE_III[s][m] for s in PAPER_SEQUENCES], m
+
+
+def test_paper_sequence_maps_twins_and_logs_to_their_column() -> None:
+    assert paper_sequence("coloradar_3_twin") == "CR 3"
+    assert paper_sequence("coloradar_6") == "CR 6"
+    assert paper_sequence("coloradar_7_twin") is None  # Table III has six ColoRadar columns
+    assert paper_sequence("demo_drift") is None and paper_sequence("coloradar_x_twin") is None
+
+
+def test_twins_table_puts_the_papers_rows_beside_ours(tmp_path: Path) -> None:
+    def row(seq: str, method: str, seed: int, pos: float, yaw: float) -> dict[str, object]:
+        return {"seq": seq, "method": method, "seed": seed, "config": "{}", "pos_rmse_m": pos, "yaw_rmse_deg": yaw}
+
+    rows = [row("coloradar_2_twin", "rich_slam", 0, 1.0, 10.0), row("coloradar_2_twin", "rich_slam", 1, 3.0, 14.0),
+            row("demo_drift", "rich_slam", 0, 0.5, 5.0), row("coloradar_1_twin", "fastslam_grid", 0, 2.0, 7.0)]
+    md = table3.paper_table(rows).splitlines()
+    assert len(md) == 4 and "demo_drift" not in "\n".join(md)  # header, rule, CR 1, CR 2 (paper order)
+    assert md[0].startswith("| sequence | fastslam_grid | rich_slam | paper EKF-RIO |")  # our methods' order
+    assert md[2].startswith("| CR 1 (coloradar_1_twin) | 2.00 / 7.00 (1 seed) | – |")
+    assert md[3].startswith("| CR 2 (coloradar_2_twin) | – | 2.00 ± 1.00 / 12.00 ± 2.00 (2) |")
+    assert md[3].endswith("| 1.60 / 91.98 | 2.78 / 25.41 | 2.41 / 24.69 | 3.06 / 24.43 | 2.68 / 22.88 |")
+    assert table3.paper_marks(rows) == {"coloradar_2_twin": {"rich_slam": (2.68, 22.88)},
+                                        "coloradar_1_twin": {"fastslam_grid": (0.96, 13.51)}}
+    assert table3.paper_table(rows[2:3]) == ""
+    out = tmp_path / "t3.jsonl"
+    out.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    png = tmp_path / "t3.png"
+    assert table3.main(["--table", str(out), "--paper", "--figure", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
