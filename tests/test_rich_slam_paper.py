@@ -58,3 +58,17 @@ def test_twins_table_puts_the_papers_rows_beside_ours(tmp_path: Path) -> None:
     png = tmp_path / "t3.png"
     assert table3.main(["--table", str(out), "--paper", "--figure", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_report_table_iii_adds_the_papers_rows_for_the_twins() -> None:
+    from stages.evaluate.tables import trajectory_table
+
+    recs = [{"seq": s, "method": "rich_slam", "metric": k, "value": v} for s in ("demo", "coloradar_4_twin")
+            for k, v in (("ate_pos_rmse_m", 1.0), ("ate_yaw_rmse_deg", 5.0))]
+    headers, rows = trajectory_table(recs)
+    assert headers == ["method", "demo", "coloradar_4_twin"]
+    paper = {r[0]: r[1:] for r in rows if r[0].startswith("paper ")}
+    assert list(paper) == [f"paper {m}" for m in PAPER_METHODS]
+    assert paper["paper RICH-SLAM"] == ["–", "3.59 / 12.61"]
+    _, rows = trajectory_table(recs[:2])  # no twin: no paper rows
+    assert not any(r[0].startswith("paper ") for r in rows)

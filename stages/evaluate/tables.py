@@ -10,6 +10,8 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
+from stages.evaluate.rich_slam_paper import PAPER_METHODS, TABLE_III, paper_sequence
+
 Record = Mapping[str, Any]
 
 TRAJECTORY_METHODS = ("odometry", "fastslam_grid", "rich_slam_no_et", "rich_slam_mean_only", "rich_slam",
@@ -70,6 +72,11 @@ def trajectory_table(records: Sequence[Record]) -> tuple[list[str], list[list[st
             pos, yaw = d.get((s, m, "ate_pos_rmse_m", 0)), d.get((s, m, "ate_yaw_rmse_deg", 0))
             row.append("–" if pos is None else f"{fmt(pos, 2)} / {fmt(yaw, 2)}")
         rows.append(row)
+    cols = [paper_sequence(s) for s in seqs]
+    if any(cols):  # the ColoRadar twins (or logs): the paper's own rows for the same sequences beside ours
+        for m in PAPER_METHODS:
+            rows.append([f"paper {m}", *("–" if c is None else "{:.2f} / {:.2f}".format(*TABLE_III[c][m])
+                                         for c in cols)])
     return headers, rows
 
 
