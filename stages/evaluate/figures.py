@@ -211,8 +211,8 @@ def plot_table3(path: Path, results: Mapping[str, Mapping[str, Sequence[tuple[fl
     fig, axes = plt.subplots(rows, cols, figsize=(3.1 * cols, 3.4 * rows), squeeze=False, constrained_layout=True)
     for ax in axes.ravel()[len(seqs):]:
         ax.set_visible(False)
+    order = list(METHOD_LABELS)  # one method order in every panel (unknown methods last)
     for ax, seq in zip(axes.ravel(), seqs, strict=False):
-        order = list(METHOD_LABELS)  # one method order in every panel (unknown methods last)
         methods = sorted(results[seq], key=lambda m: order.index(m) if m in order else len(order))
         marks = (paper or {}).get(seq, {})
         labelled = False

@@ -135,17 +135,15 @@ def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = ()) -> str:
 def paper_table(rows: Sequence[dict[str, Any]]) -> str:
     """Markdown, a line per sequence that Table III has (the ColoRadar twins): our methods' cells, then the
     paper's rows for the same sequence (``stages.evaluate.rich_slam_paper``). Empty when none has one."""
-    d = {s: cells for s, cells in by_sequence(rows).items() if paper_sequence(s)}
-    d = dict(sorted(d.items(), key=lambda kv: _paper_rank(kv[0])))
-    if not d:
+    twins = sorted(((col, s, cells) for s, cells in by_sequence(rows).items()
+                    if (col := paper_sequence(s)) is not None), key=lambda t: PAPER_SEQUENCES.index(t[0]))
+    if not twins:
         return ""
-    seen = dict.fromkeys(m for cells in d.values() for m in cells)
+    seen = dict.fromkeys(m for _, _, cells in twins for m in cells)
     ms = sorted(seen, key=lambda m: METHODS.index(m) if m in METHODS else len(METHODS))
     head = ["sequence", *ms, *(f"paper {m}" for m in PAPER_METHODS)]
     lines = ["| " + " | ".join(head) + " |", "|---|" + "---|" * (len(head) - 1)]
-    for s, cells in d.items():
-        col = paper_sequence(s)
-        assert col is not None
+    for col, s, cells in twins:
         paper = [f"{p:.2f} / {y:.2f}" for p, y in (TABLE_III[col][m] for m in PAPER_METHODS)]
         lines.append(f"| {col} ({s}) | " + " | ".join([*(cell(cells.get(m, []), m) for m in ms), *paper]) + " |")
     return "\n".join(lines)
