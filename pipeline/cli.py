@@ -283,18 +283,32 @@ def export(
 
 @app.command()
 def simulate(
-    world: Annotated[str, typer.Option("--world", help="a world in data/worlds/")],
+    world: Annotated[str, typer.Option("--world", help="a world in data/worlds/, a registered twin sequence "
+                                       "(coloradar_3_twin) or <scene>_twin for a scene under $RMAP_ROOT")],
     out_path: Annotated[Path, typer.Option("--out", help="output .bag file or folder")],
-    duration: Annotated[float, typer.Option("--duration", help="seconds")] = 60.0,
+    duration: Annotated[float | None, typer.Option("--duration", help="seconds (default: 60; a twin: its whole "
+                                                   "recorded path)")] = None,
     seed: Annotated[int, typer.Option("--seed")] = 0,
     fmt: Annotated[str, typer.Option("--format", help="bag | folder")] = "bag",
 ) -> None:
-    """Write a ColoRadar-format log (ROS1 bag or extracted folder) simulated in a built-in world."""
+    """Write a ColoRadar-format log (ROS1 bag or extracted folder) simulated in a built-in world or a twin."""
     try:
         from simulator import simulate_to
     except ImportError as exc:
         raise UserError("the simulator is not available in this installation") from exc
-    path = simulate_to(world=world, out=out_path, duration=duration, seed=seed, fmt=fmt, console=console)
+    from sources import simulated
+
+    spec = load_registry().get(world)
+    if spec is not None and spec.kind != "simulated":
+        spec = None
+    scene = simulated.twin_scene_of(world, spec.scene if spec is not None else None)
+    if scene is not None:
+        target: Any = simulated.twin_world_for(world, scene)
+    elif spec is not None and spec.world and simulated.world_file_missing(world):
+        target = spec.world  # a registered sequence's name (sim_hallway_loop -> its world, hallway_loop)
+    else:
+        target = world
+    path = simulate_to(world=target, out=out_path, duration=duration, seed=seed, fmt=fmt, console=console)
     out.print(str(path))
 
 

@@ -45,6 +45,8 @@ class SimulatedSpec(Protocol):
 
 FORMATS = ("bag", "folder")
 MAX_DURATION_S = 3600.0
+#: ``pipeline simulate``'s length for a world file when ``--duration`` is not given, seconds
+DEFAULT_DURATION_S = 60.0
 
 
 def cache_fingerprint(world: str) -> dict[str, str]:
@@ -161,17 +163,28 @@ def generate_sequence(seq: SimulatedSpec, world: World | None = None) -> Path:
     return path
 
 
-def simulate_to(world: str, out: Path, duration: float = 60.0, seed: int = 0, fmt: str = "bag",
+def simulate_to(world: str | World, out: Path, duration: float | None = None, seed: int = 0, fmt: str = "bag",
                 console: Console | None = None) -> Path:
-    """Write a simulated ColoRadar-format log (``fmt`` 'bag' or 'folder') to ``out``; returns the log's path."""
+    """Write a simulated ColoRadar-format log (``fmt`` 'bag' or 'folder') to ``out``; returns the log's path.
+
+    ``world``: a world file's name or path, or a built world (a ColoRadar twin, :func:`simulator.twin.twin_world`).
+    ``duration``: seconds, by default 60 for a world file and the whole recorded path for a twin (which cannot
+    run past the end of its path)."""
     from simulator.world import load_world
 
+    built = None if isinstance(world, str | Path) else world
+    limit = getattr(built, "duration", None)  # a twin's recorded path ends
+    if duration is None:
+        duration = float(limit) if limit is not None else DEFAULT_DURATION_S
+    if built is not None and limit is not None and duration > limit + 1e-9:
+        raise UserError(f"--duration {duration:g}: the twin '{built.spec.name}' follows a recorded path of "
+                        f"{limit:g} s; ask for {limit:g} s or less")
     _check(fmt, duration)
     out = Path(out)
     if fmt == "bag" and out.suffix != ".bag":
         out = out.with_name(out.name + ".bag")
     if out.exists() or (fmt == "bag" and sidecar_path(out).exists()):
         raise UserError(f"--out {out} already exists; remove it or choose another path")
-    w = load_world(world)
+    w = load_world(world) if isinstance(world, str | Path) else world
     _write_atomic(w, out, duration, seed, fmt, console)
     return out

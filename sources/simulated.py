@@ -61,10 +61,34 @@ def twin_root(name: str, scene: str) -> Path:
 
 def twin_world_of(spec: Any) -> Any:
     """The :class:`simulator.twin.TwinWorld` of a twin sequence (its scene read from ``$RMAP_ROOT``)."""
+    return twin_world_for(str(spec.name), str(spec.scene))
+
+
+def twin_scene_of(world: str, registered_scene: str | None) -> str | None:
+    """The scene a ``pipeline simulate --world`` name asks for a twin of, or None for a world file.
+
+    ``registered_scene``: the scene of the registered sequence named ``world`` (``coloradar_3_twin`` ->
+    ``edgar_classroom_run0``), if any. Otherwise ``<scene>_twin`` names the twin of any scene under
+    ``$RMAP_ROOT`` (``arpg_lab_run2_twin``), unless a world file of that name exists (world files win)."""
+    if registered_scene:
+        return registered_scene
+    if world.endswith("_twin") and len(world) > len("_twin") and world_file_missing(world):
+        return world.removesuffix("_twin")
+    return None
+
+
+def world_file_missing(world: str) -> bool:
+    """True when ``world`` is neither a path nor the name of a world file in ``data/worlds/``."""
+    from simulator.world import worlds_dir
+
+    return not Path(world).exists() and not (worlds_dir() / f"{world}.toml").is_file()
+
+
+def twin_world_for(name: str, scene: str) -> Any:
+    """The :class:`simulator.twin.TwinWorld` of ``scene`` (read from ``$RMAP_ROOT``; ``name`` for errors)."""
     from simulator.twin import twin_world
 
-    scene = str(spec.scene)
-    maps = mapset.read_map_set(twin_root(spec.name, scene), scene)
+    maps = mapset.read_map_set(twin_root(name, scene), scene)
     kind = "lidar" if maps.lidar is not None else "lidar_filtered"
     points = maps.lidar if maps.lidar is not None else maps.lidar_filtered
     return twin_world(scene, points, maps.trajectory, map_file=maps.files.get(kind, ""))

@@ -211,6 +211,46 @@ def test_short_twin_piece_is_generated_and_ingested(monkeypatch: pytest.MonkeyPa
     assert np.median(np.linalg.norm(xyz - path[k], axis=1)) < 0.3
 
 
+def _cli(*args: str, env: dict[str, str]) -> Any:
+    import os
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True, text=True, cwd=ROOT,
+                          env={**os.environ, **env, "COLUMNS": "200"}, timeout=300)
+
+
+@needs_shared
+def test_pipeline_simulate_writes_a_twin(tmp_path: Path) -> None:
+    """``pipeline simulate --world coloradar_1_twin`` (registered) and ``<scene>_twin`` (any scene): the twin's
+    ground truth follows the scene's recorded path; past the path's end, or without the maps, one-line errors."""
+    import json
+
+    from sources.mapset import read_map_set
+
+    env = {"RMAP_ROOT": str(SHARED_MAPS)}
+    r = _cli("simulate", "--world", "coloradar_1_twin", "--out", str(tmp_path / "a"), "--duration", "2",
+             "--format", "folder", env=env)
+    assert r.returncode == 0, r.stderr
+    assert Path(r.stdout.strip()) == tmp_path / "a"
+    meta = json.loads((tmp_path / "a" / "sim" / "meta.json").read_text())
+    assert meta["world"] == "aspen_run0_twin" and meta["duration_s"] == 2.0
+    rows = np.loadtxt(tmp_path / "a" / "groundtruth" / "groundtruth_poses.txt", ndmin=2)  # x y z qx qy qz qw
+    start = read_map_set(SHARED_MAPS, "aspen_run0").trajectory[0]
+    assert len(rows) >= 10 and np.linalg.norm(rows[0, :3] - start) < 0.3
+    r = _cli("simulate", "--world", "arpg_lab_run2_twin", "--out", str(tmp_path / "b"), "--duration", "1",
+             env=env)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "b.bag").is_file() and not list(tmp_path.glob(".tmp-*"))
+    r = _cli("simulate", "--world", "coloradar_1_twin", "--out", str(tmp_path / "c"), "--duration", "90", env=env)
+    assert r.returncode == 2 and "recorded path of 86 s" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "c.bag").exists()
+    r = _cli("simulate", "--world", "atlantis_run0_twin", "--out", str(tmp_path / "d"), env=env)
+    assert r.returncode == 2 and "no maps of scene 'atlantis_run0'" in r.stderr
+    r = _cli("simulate", "--world", "coloradar_1_twin", "--out", str(tmp_path / "e"), env={"RMAP_ROOT": ""})
+    assert r.returncode == 2 and "RMAP_ROOT is not set" in r.stderr
+
+
 def _wall_twin(params: TwinParams | None = None) -> Any:
     path = np.column_stack([np.linspace(0, 5, 50), np.zeros(50), np.full(50, 0.5)])
     wall = np.array([[x, 2.0, z] for x in np.arange(-1, 6, 0.15) for z in np.arange(0, 1.5, 0.15)])
