@@ -191,6 +191,24 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
     assert "| fastslam_grid |" in md and "(2)" in md and md.count("\n") == 3
     cells = table3.by_sequence(rows)["seq_a"]
     assert len(cells["odometry"]) == 1 and len(cells["fastslam_grid"]) == 2  # odometry once, a dot per seed
+    assert all("pos_rmse_anchored_m" not in r for r in rows)  # an odometry without a ground-truth anchor
+    # anchored at the ground truth (the odometry stage's default): the errors without alignment as well
+    odo_xy = inp["run"].odometry
+    write_artifact({"scan": np.arange(25, dtype=np.int32), "t_ns": t_ns, "x": odo_xy[:, 0], "y": odo_xy[:, 1],
+                    "yaw": odo_xy[:, 2]}, inp["dirs"]["odometry"] / "odometry.parquet", "odometry",
+                   metadata={"anchor": "groundtruth"})
+    out2 = tmp_path / "t3_anchored.jsonl"
+    assert table3.main([str(tmp_path / "seq_a"), "--methods", "odometry,fastslam_grid", "--seeds", "0",
+                        "--out", str(out2), "--set", "n_particles=4", "--set", "workers=0"]) == 0
+    rows2 = [json.loads(line) for line in out2.read_text().splitlines()]
+    odo2 = next(r for r in rows2 if r["method"] == "odometry")
+    d = odo_xy - gt  # the same times: no interpolation, no alignment
+    yaw = np.degrees(np.sqrt(np.mean(np.angle(np.exp(1j * d[:, 2])) ** 2)))
+    assert odo2["pos_rmse_anchored_m"] == pytest.approx(np.sqrt(np.mean(np.sum(d[:, :2] ** 2, 1))), rel=1e-9)
+    assert odo2["yaw_rmse_anchored_deg"] == pytest.approx(yaw, rel=1e-9)
+    assert odo2["pos_rmse_m"] == odo[0]["pos_rmse_m"]  # the protocol's numbers do not change
+    md2 = table3.table([*rows, *rows2], anchored=True)
+    assert md2.count("\n") == 3 and "(1 seed)" in md2  # only the anchored rows: one seed of the grid
     png = tmp_path / "t3.png"
     assert table3.main(["--table", str(out), "--figure", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not list(tmp_path.glob("*.tmp.png"))

@@ -35,7 +35,7 @@ from stages.evaluate.rich_slam_paper import (
     TABLE_III,
     paper_sequence,
 )
-from stages.evaluate.trajectory import evaluate_trajectory, quat_to_yaw
+from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, quat_to_yaw
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
 from stages.slam.methods import METHODS, domain_from_trajectory, run_method
@@ -57,6 +57,14 @@ def load_inputs(run_dir: Path, p: SlamParams) -> tuple[npt.NDArray[np.int64], F6
     truth: Truth = (gt["t_ns"].astype(np.int64), np.stack([gt["x"], gt["y"]], 1).astype(np.float64),
                     quat_to_yaw(gt["qx"], gt["qy"], gt["qz"], gt["qw"]))
     return t_ns, poses, samples, truth
+
+
+def groundtruth_anchored(run_dir: Path) -> bool:
+    """Whether the run's odometry (and so every filter started from it) is in the ground truth's frame."""
+    import pyarrow.parquet as pq
+
+    meta = pq.read_schema(run_dir / "odometry" / "odometry.parquet").metadata or {}
+    return meta.get(b"anchor") == b"groundtruth"
 
 
 def done_keys(out: Path) -> set[tuple[str, str, int, str]]:
@@ -87,6 +95,7 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
         half, centre = domain_from_trajectory(odo[:, :2], p.domain_padding)
         basis = hm.make_basis(half, centre, p.n_basis, p.basis_kind)
         cfg = p.config()
+        anchored = groundtruth_anchored(run_dir)
         for m, s in todo:
             t0 = time.perf_counter()
             res = run_method(m, odo, samples, basis, cfg, s)
@@ -95,18 +104,28 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
             row = {"seq": run_dir.name, "method": m, "seed": s, "config": config, "pos_rmse_m": e.pos_rmse_m,
                    "yaw_rmse_deg": e.yaw_rmse_deg, "s_per_scan": (time.perf_counter() - t0) / len(odo),
                    "resamplings": res.resampled, "scans": len(odo)}
+            if anchored:  # beside the Table III protocol: no alignment (every filter starts at the anchor)
+                row["pos_rmse_anchored_m"], row["yaw_rmse_anchored_deg"] = anchored_errors(
+                    t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
             append_row(out, row)
             print(f"{run_dir.name} {m} seed {s}: {e.pos_rmse_m:.3f} m / {e.yaw_rmse_deg:.2f} deg "
                   f"({row['s_per_scan']:.3f} s/scan)", flush=True)
 
 
-def by_sequence(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, list[tuple[float, float]]]]:
-    """``{sequence: {method: [(position RMSE, yaw RMSE) per seed]}}`` in the rows' order (odometry once)."""
+def by_sequence(rows: Sequence[dict[str, Any]], anchored: bool = False
+                ) -> dict[str, dict[str, list[tuple[float, float]]]]:
+    """``{sequence: {method: [(position RMSE, yaw RMSE) per seed]}}`` in the rows' order (odometry once).
+
+    ``anchored``: the errors without alignment (``pos_rmse_anchored_m``, ``yaw_rmse_anchored_deg``) of the rows
+    that have them (runs whose odometry is anchored at the ground truth), the others left out."""
+    keys = ("pos_rmse_anchored_m", "yaw_rmse_anchored_deg") if anchored else ("pos_rmse_m", "yaw_rmse_deg")
     out: dict[str, dict[str, list[tuple[float, float]]]] = {}
     for r in rows:
+        if keys[0] not in r:
+            continue
         cell = out.setdefault(r["seq"], {}).setdefault(r["method"], [])
         if not (r["method"] == "odometry" and cell):  # the odometry does not depend on the seed
-            cell.append((float(r["pos_rmse_m"]), float(r["yaw_rmse_deg"])))
+            cell.append((float(r[keys[0]]), float(r[keys[1]])))
     return out
 
 
@@ -121,11 +140,12 @@ def cell(seeds: Sequence[tuple[float, float]], method: str) -> str:
     return f"{v[:, 0].mean():.2f} ± {h[0]:.2f} / {v[:, 1].mean():.2f} ± {h[1]:.2f} ({len(v)})"
 
 
-def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = ()) -> str:
+def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = (), anchored: bool = False) -> str:
     """Markdown: per method and sequence, mean position / yaw RMSE over seeds, +- half the range, seeds."""
-    d = by_sequence(rows)
+    d = by_sequence(rows, anchored)
     seqs = list(d)
-    ms = list(dict.fromkeys([*methods, *(r["method"] for r in rows)]))
+    key = "pos_rmse_anchored_m" if anchored else "pos_rmse_m"
+    ms = list(dict.fromkeys([*methods, *(r["method"] for r in rows if key in r)]))
     lines = ["| method | " + " | ".join(seqs) + " |", "|---|" + "---|" * len(seqs)]
     for m in ms:
         lines.append(f"| {m} | " + " | ".join(cell(d[s].get(m, []), m) for s in seqs) + " |")
@@ -176,10 +196,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--figure", type=Path, help="with --table: also draw it into this PNG")
     ap.add_argument("--paper", action="store_true", help="with --table: also the ColoRadar twins beside the paper's "
                     "Table III (a line per twin; in the figure, a mark at the paper's value of each method)")
+    ap.add_argument("--anchored", action="store_true", help="with --table: also the errors without alignment "
+                    "(rows of runs whose odometry is anchored at the ground truth)")
     a = ap.parse_args(argv)
     if a.table:
         rows = [json.loads(line) for line in a.table.read_text().splitlines() if line.strip()]
         print(table(rows))
+        if a.anchored:
+            print("\nWithout alignment (anchored at the ground truth):\n")
+            print(table(rows, anchored=True) if any("pos_rmse_anchored_m" in r for r in rows)
+                  else "(no row has errors without alignment)")
         if a.paper:
             print("\n" + (paper_table(rows) or "(no sequence of the paper's Table III in these rows)"))
         if a.figure:
