@@ -53,6 +53,8 @@ def test_twins_table_puts_the_papers_rows_beside_ours(tmp_path: Path) -> None:
     assert table3.paper_marks(rows) == {"coloradar_2_twin": {"rich_slam": (2.68, 22.88)},
                                         "coloradar_1_twin": {"fastslam_grid": (0.96, 13.51)}}
     assert table3.paper_table(rows[2:3]) == ""
+    # the full table's columns: the other sequences first, then the twins in the paper's order (as the figure)
+    assert table3.table(rows).splitlines()[0] == "| method | demo_drift | coloradar_1_twin | coloradar_2_twin |"
     out = tmp_path / "t3.jsonl"
     out.write_text("".join(json.dumps(r) + "\n" for r in rows))
     png = tmp_path / "t3.png"

@@ -106,9 +106,11 @@ def test_profile_extra_rows_endpoint_noise_and_ray_step() -> None:
     cfg = SlamConfig(workers=0)
     w = cfg.weighting("rich_slam")
     out = {(p.model, p.axis): p for p in profiles(gt, scans, [80, 110], cfg, padding=3.0, extra={
-        "same": (w, scans, cfg.noise_variance), "stiff": (w, scans, 0.09), "fine": (w, fine, None)})}
+        "same": (w, scans, cfg.noise_variance), "stiff": (w, scans, 0.09), "fine": (w, fine, None),
+        "no_et": (cfg.weighting("rich_slam_no_et"), scans, None)})}
     for axis in ("forward", "lateral", "yaw"):
         paper = out[("hilbert_gp (variance, ET)", axis)].loglik
         np.testing.assert_allclose(out[("same", axis)].loglik, paper, atol=1e-8)
         assert np.abs(out[("stiff", axis)].loglik - paper).max() > 1e-3
         assert np.abs(out[("fine", axis)].loglik - paper).max() > 1e-3
+        assert np.abs(out[("no_et", axis)].loglik - paper).max() > 1e-3  # the ablation's weight, on the same map

@@ -143,7 +143,7 @@ def cell(seeds: Sequence[tuple[float, float]], method: str) -> str:
 def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = (), anchored: bool = False) -> str:
     """Markdown: per method and sequence, mean position / yaw RMSE over seeds, +- half the range, seeds."""
     d = by_sequence(rows, anchored)
-    seqs = list(d)
+    seqs = sorted(d, key=_paper_rank)  # the rows' order, the twins last in the paper's column order
     key = "pos_rmse_anchored_m" if anchored else "pos_rmse_m"
     ms = list(dict.fromkeys([*methods, *(r["method"] for r in rows if key in r)]))
     lines = ["| method | " + " | ".join(seqs) + " |", "|---|" + "---|" * len(seqs)]
@@ -212,9 +212,7 @@ def main(argv: list[str] | None = None) -> int:
             from stages.evaluate.figures import plot_table3
 
             tmp = a.figure.with_name(a.figure.name + ".tmp.png")
-            results = by_sequence(rows)
-            if a.paper:  # the twins after the other sequences, in the paper's order
-                results = dict(sorted(results.items(), key=lambda kv: _paper_rank(kv[0])))
+            results = dict(sorted(by_sequence(rows).items(), key=lambda kv: _paper_rank(kv[0])))  # as the table
             plot_table3(tmp, results, paper=paper_marks(rows) if a.paper else None)
             os.replace(tmp, a.figure)
             print(f"wrote {a.figure}")
