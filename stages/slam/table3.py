@@ -114,7 +114,8 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
 
 def by_sequence(rows: Sequence[dict[str, Any]], anchored: bool = False
                 ) -> dict[str, dict[str, list[tuple[float, float]]]]:
-    """``{sequence: {method: [(position RMSE, yaw RMSE) per seed]}}`` in the rows' order (odometry once).
+    """``{sequence: {method: [(position RMSE, yaw RMSE) per seed]}}`` (odometry once): sequences in the rows'
+    order, the ColoRadar twins last in the paper's column order (the table's and the figure's order).
 
     ``anchored``: the errors without alignment (``pos_rmse_anchored_m``, ``yaw_rmse_anchored_deg``) of the rows
     that have them (runs whose odometry is anchored at the ground truth), the others left out."""
@@ -126,7 +127,7 @@ def by_sequence(rows: Sequence[dict[str, Any]], anchored: bool = False
         cell = out.setdefault(r["seq"], {}).setdefault(r["method"], [])
         if not (r["method"] == "odometry" and cell):  # the odometry does not depend on the seed
             cell.append((float(r[keys[0]]), float(r[keys[1]])))
-    return out
+    return dict(sorted(out.items(), key=lambda kv: _paper_rank(kv[0])))
 
 
 def cell(seeds: Sequence[tuple[float, float]], method: str) -> str:
@@ -143,7 +144,7 @@ def cell(seeds: Sequence[tuple[float, float]], method: str) -> str:
 def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = (), anchored: bool = False) -> str:
     """Markdown: per method and sequence, mean position / yaw RMSE over seeds, +- half the range, seeds."""
     d = by_sequence(rows, anchored)
-    seqs = sorted(d, key=_paper_rank)  # the rows' order, the twins last in the paper's column order
+    seqs = list(d)
     key = "pos_rmse_anchored_m" if anchored else "pos_rmse_m"
     ms = list(dict.fromkeys([*methods, *(r["method"] for r in rows if key in r)]))
     lines = ["| method | " + " | ".join(seqs) + " |", "|---|" + "---|" * len(seqs)]
@@ -212,8 +213,7 @@ def main(argv: list[str] | None = None) -> int:
             from stages.evaluate.figures import plot_table3
 
             tmp = a.figure.with_name(a.figure.name + ".tmp.png")
-            results = dict(sorted(by_sequence(rows).items(), key=lambda kv: _paper_rank(kv[0])))  # as the table
-            plot_table3(tmp, results, paper=paper_marks(rows) if a.paper else None)
+            plot_table3(tmp, by_sequence(rows), paper=paper_marks(rows) if a.paper else None)
             os.replace(tmp, a.figure)
             print(f"wrote {a.figure}")
         return 0
