@@ -156,8 +156,8 @@ def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = (), anchored:
 def paper_table(rows: Sequence[dict[str, Any]]) -> str:
     """Markdown, a line per sequence that Table III has (the ColoRadar twins): our methods' cells, then the
     paper's rows for the same sequence (``stages.evaluate.rich_slam_paper``). Empty when none has one."""
-    twins = sorted(((col, s, cells) for s, cells in by_sequence(rows).items()
-                    if (col := paper_sequence(s)) is not None), key=lambda t: PAPER_SEQUENCES.index(t[0]))
+    twins = [(col, s, cells) for s, cells in by_sequence(rows).items()  # already in the paper's order
+             if (col := paper_sequence(s)) is not None]
     if not twins:
         return ""
     seen = dict.fromkeys(m for _, _, cells in twins for m in cells)
