@@ -106,7 +106,8 @@ def test_voxel_stage_odometry_trajectory(tmp_path: Path, ingest_dir: Path, gt_ru
     odo.mkdir()
     n = gt.num_rows
     write_artifact({"scan": np.arange(n, dtype=np.int32), "t_ns": gt.column("t_ns").to_numpy(),
-                    "x": gt.column("x").to_numpy(), "y": gt.column("y").to_numpy(), "yaw": yaw},
+                    "x": gt.column("x").to_numpy(), "y": gt.column("y").to_numpy(), "yaw": yaw,
+                    "z": np.zeros(n), "roll": np.zeros(n), "pitch": np.zeros(n)},
                    odo / "odometry.parquet", "odometry")
     out, stats = _run(tmp_path, params, {"ingest": ingest_dir, "odometry": odo})
     assert stats["se2_height"] == pytest.approx(gt.column("z").to_numpy()[0])
