@@ -183,7 +183,10 @@ def run_sweep(
 
     console.print(f"sweep {wf.name}: {len(points)} point(s) x {len(seqs)} sequence(s) on the {ex.name} executor")
     results = run_all(tasks, ex, done)
-    table = gather_sweep(root, points, [s.name for s in seqs])
+    gathered = swept_sequences(root, points, [s.name for s in seqs])
+    if len(gathered) > len(seqs):
+        console.print(f"gathering {len(gathered)} sequences (with those of earlier calls): {', '.join(gathered)}")
+    table = gather_sweep(root, points, gathered)
     metrics = None
     figs: list[Path] = []
     if table is not None:
@@ -192,6 +195,21 @@ def run_sweep(
         metrics = write_artifact(table, root / "sweep_metrics.parquet", "metrics")
         figs = plot_sweep(wf, root, points, [s.name for s in seqs], table.to_pylist())
     return SweepRun(root, points, results, metrics, figs)
+
+
+def swept_sequences(root: Path, points: Sequence[SweepPoint], current: Sequence[str],
+                    stage: str = "evaluate") -> list[str]:
+    """``current``, then every other sequence that an earlier call of the same sweep left results for (so the
+    gathered table and figure cover every sequence swept so far, one call or many)."""
+    seen = list(current)
+    for p in points:
+        d = root / p.name
+        if not d.is_dir():
+            continue
+        for sub in sorted(d.iterdir()):
+            if sub.name not in seen and (sub / stage / "metrics.parquet").exists():
+                seen.append(sub.name)
+    return seen
 
 
 def gather_sweep(root: Path, points: Sequence[SweepPoint], seqs: Sequence[str], stage: str = "evaluate") -> Any:

@@ -154,6 +154,11 @@ def test_sweep_runs_points_shares_upstream_and_gathers(tmp_path: Path) -> None:
     # a second run is cached everywhere
     again = run_sweep(str(wf), [seq], runs, registry="tests.test_sweep:toy_registry")
     assert all(o.action == "cached" for r in again.results for o in r.outcomes)
+    # another sequence swept in a later call: the gathered table holds both
+    other = SequenceInfo(name="toyseq2", kind="source", source=Path("/nonexistent"))
+    res2 = run_sweep(str(wf), [other], runs, registry="tests.test_sweep:toy_registry")
+    assert res2.metrics is not None
+    assert {r["seq"] for r in read_artifact(res2.metrics, "metrics").to_pylist()} == {"toyseq", "toyseq2"}
 
 
 def test_sweep_rejects_unknown_parameters(tmp_path: Path) -> None:
