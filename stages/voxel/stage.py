@@ -342,6 +342,9 @@ class VoxelStage(Stage):
                 n_pts += int(lengths[i])
                 advance(1)
         dt = time.perf_counter() - t0
+        if p.trajectory != "groundtruth" and valid.any():  # the 3D poses the radar-only map was built along
+            ctx.recording.trajectory("world/voxel/trajectory", scans[valid], t_ns[starts][valid],
+                                     T_wb[valid, :3, 3], color=(255, 160, 40))
         n_skip = int((~valid).sum())
         if n_skip:
             ctx.warn(f"{n_skip} of {len(scans)} radar scans lie outside the {p.trajectory} trajectory's time span "
