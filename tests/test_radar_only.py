@@ -39,8 +39,8 @@ def test_radar_only_workflow_builds_completes_and_scores_the_map_along_the_slam_
     assert got[("odometry", "ate_pos_rmse_anchored_m")] >= 0
     # one recording: the radar-only map as built and completed, the lidar map and the trajectories
     paths = set().union(*(entity_paths_in(f) for f in seq.glob("*/*.rrd")))
-    for p in ("/world/voxel/radar", "/world/voxel/trajectory/pose", "/world/complete", "/world/voxel/lidar", "/world/slam/trajectory",
-              "/world/odometry", "/world/groundtruth"):
+    for p in ("/world/voxel/radar", "/world/voxel/trajectory/pose", "/world/complete", "/world/voxel/lidar",
+              "/world/slam/trajectory", "/world/odometry", "/world/groundtruth"):
         assert any(q == p or q.startswith(p + "/") for q in paths), (p, sorted(paths))
     from rerun.chunk import RrdReader
 
