@@ -115,11 +115,10 @@ SCENE = "toy_run0"
 
 
 def _write_ply(path: Path, pts: np.ndarray) -> None:
-    from plyfile import PlyData, PlyElement
+    """An ASCII, vertex-only, double-precision PLY like the authors' (Open3D) files."""
+    from sources.ply import write_ply
 
-    v = np.empty(len(pts), dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")])
-    v["x"], v["y"], v["z"] = pts.T
-    PlyData([PlyElement.describe(v, "vertex")], text=True, comments=["Created by Open3D"]).write(str(path))
+    write_ply(path, np.asarray(pts, np.float64), binary=False)
 
 
 def toy_scene(root: Path, n: int = 300) -> Path:
