@@ -18,7 +18,8 @@ import pyarrow.parquet as pq  # noqa: E402
 from rich.console import Console  # noqa: E402
 
 from pipeline.errors import UserError  # noqa: E402
-from stages.complete.maps import map_split, read_index, validation_scenes  # noqa: E402
+from sources.mapset import read_index  # noqa: E402
+from stages.complete.maps import map_split, validation_scenes  # noqa: E402
 from stages.complete.model import SIZES, ModelConfig  # noqa: E402
 from stages.complete.synthetic import make_patches, scene_surface  # noqa: E402
 from stages.complete.train import Selection, TrainConfig, load_state, train  # noqa: E402

@@ -204,6 +204,54 @@ def test_bad_shared_layout_files(tmp_path: Path) -> None:
         mapset.read_map_set(tmp_path / "maps", SCENE)
 
 
+def _folder_scene(maps: Path, name: str = SCENE) -> None:
+    scene = maps / name
+    scene.mkdir(parents=True)
+    rng = np.random.default_rng(2)
+    for f in ("radar", "lidar_filtered", "poses", "trajectory"):
+        pts = rng.normal(size=(20, 3))
+        pq.write_table(pa.table({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}), scene / f"{f}.parquet")
+
+
+def test_index_json_has_one_reader_for_scenes_and_sets(tmp_path: Path) -> None:
+    """``sources.mapset`` reads index.json for one scene (read_map_set), for a map set (read_index) and for the
+    rebuilt-ground-truth marks (rebuilt_scenes); the callers in stages/ import it instead of parsing it."""
+    maps = tmp_path / "maps"
+    _folder_scene(maps)
+    _folder_scene(maps, "other_run1")
+    entry = {"split": "test", "environment": "toy", "lidar_filtered": {"source": "union of 3 published gt patches"}}
+    (maps / "index.json").write_text(json.dumps({SCENE: entry, "other_run1": {"split": "train", "environment": "o"}}))
+    ms = mapset.read_map_set(maps, SCENE)
+    assert (ms.split, ms.environment, ms.lidar_filtered_source) == ("test", "toy", "rebuilt")
+    info = mapset.read_index(maps)
+    assert list(info) == ["other_run1", SCENE] and info[SCENE].gt_source == entry["lidar_filtered"]["source"]
+    assert info["other_run1"].gt_source == "map"
+    assert mapset.rebuilt_scenes(mapset.read_index_file(maps / "index.json")) == {SCENE}
+    from stages.complete import maps as complete_maps
+    from stages.evaluate import rmap_results
+
+    assert not hasattr(rmap_results, "read_index") and not hasattr(complete_maps, "read_index")  # the old readers
+
+
+@pytest.mark.parametrize("case, expect", [
+    ("not_json", "unreadable map-set index"),
+    ("list", "not a map-set index"),
+    ("entry", "scene 'toy_run0' is not an object"),
+])
+def test_bad_index_json_is_one_line_error_for_every_reader(tmp_path: Path, case: str, expect: str) -> None:
+    maps = tmp_path / "maps"
+    _folder_scene(maps)
+    index = maps / "index.json"
+    index.write_text({"not_json": '{"toy_run0": {"split": "te', "list": "[1, 2]",
+                      "entry": json.dumps({SCENE: "test"})}[case])
+    for read in (lambda: mapset.read_map_set(maps, SCENE), lambda: mapset.read_index(maps),
+                 lambda: mapset.read_index_file(index)):
+        with pytest.raises(UserError) as info:
+            read()
+        message = str(info.value)
+        assert message.startswith(str(index)) and expect in message and "\n" not in message, message
+
+
 def test_rmap_root_unset_wrong_or_without_the_scene(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     seq = SequenceInfo(name=f"rmap_{SCENE}", kind="rmap", scene=SCENE)
     monkeypatch.delenv("RMAP_ROOT", raising=False)

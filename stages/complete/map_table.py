@@ -28,10 +28,11 @@ def evaluate_scenes(root: str | Path, scenes: Sequence[str], checkpoint: str | P
                     resolution: float = 0.15, device: str = "cpu", batch_size: int = 8, seed: int = 0,
                     advance: Callable[[str], None] | None = None) -> list[dict[str, Any]]:
     """Per scene: the input and completed maps' metrics, patch count and network seconds per patch."""
+    from sources.mapset import read_index
     from stages.complete.checkpoint import load_checkpoint
     from stages.complete.infer import resolve_device
     from stages.complete.map_eval import complete_map, score
-    from stages.complete.maps import read_index, read_scene, scene_patches
+    from stages.complete.maps import read_scene, scene_patches
 
     info = read_index(root)
     dev = resolve_device(device)
@@ -108,7 +109,8 @@ def main(
     from rich.console import Console
     from rich.progress import Progress
 
-    from stages.complete.maps import read_index, validation_scenes
+    from sources.mapset import read_index
+    from stages.complete.maps import validation_scenes
 
     if threads is not None:
         torch.set_num_threads(threads)

@@ -124,7 +124,8 @@ def _check_env(req: TrainRequest) -> None:
 def collect_maps(req: TrainRequest, console: Console) -> tuple[list[Patch], dict[str, Any], dict[str, Any]]:
     """Training patches (a_train) of the map set's train scenes, the validation scenes (patches at a_val and
     their ground truth) and the split record. Test scenes are not read."""
-    from stages.complete.maps import map_split, read_index, read_scene, scene_patches
+    from sources.mapset import read_index
+    from stages.complete.maps import map_split, read_scene, scene_patches
 
     assert req.maps is not None
     scenes = read_index(req.maps)
