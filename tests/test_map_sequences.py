@@ -279,6 +279,48 @@ def test_cli_map_errors_exit_2_with_one_line(tmp_path: Path) -> None:
     assert not (tmp_path / "runs" / "rmap_arpg_lab_run0" / "voxel").exists()
 
 
+def test_without_the_learn_extra_completion_is_named_not_dropped(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 28: without torch, `run evaluate` on a map sequence used to run voxel, patches and evaluate, leave
+    the completion out and exit 0. Simulated by the import check saying torch is missing (torch stays)."""
+    from pipeline import cli
+    from stages.complete.stage import CompleteStage
+
+    monkeypatch.setattr(CompleteStage, "missing_requirements", lambda self: ["torch", "safetensors"])
+    monkeypatch.setenv("COLUMNS", "250")
+    root = toy_scene(tmp_path / "scene")
+    runs = tmp_path / "runs"
+    install = "needs torch, safetensors, not installed (the 'learn' extra: pip install -e '.[learn]', or make demo)"
+
+    def main(*args: str) -> int:
+        monkeypatch.setattr(sys, "argv", ["pipeline", *args, "--source", str(root), "--runs-dir", str(runs)])
+        try:
+            cli.main()
+        except SystemExit as exc:
+            return int(exc.code or 0)
+        return 0
+
+    # the request needs the completion: exit 2, one line, nothing run
+    assert main("run", "evaluate") == 2
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert lines == [f"error: stage 'evaluate' needs 'complete' for sequence 'rmap_{SCENE}', and 'complete' cannot "
+                     f"run: {install}; `pipeline run all` goes on without it"], err
+    assert not (runs / f"rmap_{SCENE}").exists()
+    # `run complete` names it the same way
+    assert main("run", "complete") == 2
+    assert f"stage 'complete' cannot run: {install}" in capsys.readouterr().err
+    # run all: the workflow goes on without it, says so in the table and on stderr, exit 0
+    assert main("run", "all") == 0
+    err = capsys.readouterr().err
+    rows = {ln.split("│")[1].strip(): ln for ln in err.splitlines() if ln.count("│") > 3}
+    assert "skipped" in rows["complete"] and install in rows["complete"]
+    assert "ran" in rows["evaluate"] and "without 'complete' (not installed)" in rows["evaluate"]
+    assert f"warning: 'evaluate' of rmap_{SCENE} went without 'complete', which cannot run: {install}" in err
+    assert (runs / f"rmap_{SCENE}" / "evaluate" / "metrics.parquet").is_file()
+    assert not (runs / f"rmap_{SCENE}" / "complete").exists()
+
+
 # -- the DAG on a real scene ----------------------------------------------------------------------------------
 @needs_shared
 def test_run_all_on_a_map_sequence_skips_the_log_stages(tmp_path: Path) -> None:
