@@ -116,7 +116,8 @@ def collect(req: TrainRequest, seqs: list[SequenceInfo], overrides: Overrides, c
 def _check_env(req: TrainRequest) -> None:
     for mod in ("torch", "safetensors"):
         if importlib.util.find_spec(mod) is None:
-            raise UserError(f"`pipeline train` needs {mod}: pip install 'radar-pipeline[learn]'")
+            raise UserError(f"`pipeline train` needs {mod}, not installed (the 'learn' extra: pip install -e "
+                            "'.[learn]', or make demo)")
     if req.out.suffix not in (".safetensors", ".pt"):
         raise UserError(f"--out {req.out}: the checkpoint must end in .safetensors or .pt")
 
