@@ -98,22 +98,20 @@ def read_ply_xyz(path: Path, what: str = "point cloud") -> F64:
     Double-precision properties are returned bit for bit (the RMap F-score depends on the stored values).
     Raises :class:`UserError` naming the file on an unreadable, truncated or malformed file.
     """
-    from meshio import ReadError
-    from meshio.ply import _ply
+    import meshio
 
     path = Path(path)
     try:
         with path.open("rb") as f:
             fmt, n, _props = _header(f, path, what)
-            if n == 0:  # nothing to parse (meshio's ASCII reader rejects a zero vertex count)
-                return np.zeros((0, 3))
-            f.seek(0)
-            mesh = _ply.read_buffer(f)
+        if n == 0:  # nothing to parse (meshio's ASCII reader rejects a zero vertex count)
+            return np.zeros((0, 3))
+        mesh = meshio.read(path, file_format="ply")
     except FileNotFoundError:
         raise UserError(f"{path}: {what} missing") from None
     except UserError:
         raise
-    except (ReadError, ValueError, IndexError, KeyError, UnicodeDecodeError, OSError, EOFError) as exc:
+    except (meshio.ReadError, ValueError, IndexError, KeyError, UnicodeDecodeError, OSError, EOFError) as exc:
         why = " ".join(str(exc).split()) or type(exc).__name__  # numpy's messages span lines
         raise UserError(f"{path}: unreadable PLY {what} ({why}); the file is truncated or not a PLY file: "
                         "download it again") from exc
