@@ -140,3 +140,17 @@ def test_bad_files_give_one_line_errors(tmp_path: Path, case: str, expect: str) 
         read_ply_xyz(path, "radar map")
     message = str(info.value)
     assert str(path) in message and expect in message and "\n" not in message, message
+
+
+def test_no_plyfile_needed(tmp_path: Path) -> None:
+    """plyfile (GPL-3.0) is not a dependency: reading and writing work with its import blocked."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['plyfile'] = None\n"
+            "import numpy as np; from pathlib import Path; from sources.ply import read_ply_xyz, write_ply\n"
+            f"p = write_ply(Path({str(tmp_path / 'a.ply')!r}), np.ones((3, 3)), binary=False)\n"
+            "assert read_ply_xyz(p).sum() == 9\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "plyfile" not in (ROOT / "pyproject.toml").read_text()
