@@ -209,3 +209,22 @@ def test_run_all_goes_without_an_uninstalled_stage_and_says_so(tmp_path: Path) -
     buf = io.StringIO()
     out = result(extra_runner(tmp_path, LOG, Console(file=buf, width=300)).run(["all"]))
     assert out["report"] == ("cached", "without 'build' (not installed)") and "went without 'build'" in buf.getvalue()
+
+
+def test_several_sequences_warn_once_per_uninstalled_stage(tmp_path: Path) -> None:
+    """With several sequences the workers' consoles are quiet: the driver names the uninstalled stage once."""
+    from pipeline.cli import not_installed_warnings
+    from pipeline.executors import TaskResult
+
+    reg = {s.name: s for s in (Read(), NeedsExtra(), After(), Report())}
+    results = []
+    for i in range(5):
+        seq = SequenceInfo(name=f"toy_log{i}", kind="source", source=Path("/nonexistent"))
+        wf = Workflow("toy", list(reg), {})
+        outcomes = Runner(seq, tmp_path, reg, wf, {}, None).run(["all"])
+        results.append(TaskResult(seq.name, seq.name, str(tmp_path), True, outcomes))
+    (line,) = not_installed_warnings(results, reg)
+    assert line == ("'build' did not run for 5 sequence(s) (toy_log0, toy_log1, toy_log2 and 2 more), and the stages "
+                    "that use it went without it: needs a_module_that_does_not_exist_xyz, not installed (the 'learn' "
+                    "extra: pip install -e '.[learn]', or make demo)")
+    assert not_installed_warnings(results, {s.name: s for s in (Read(), Build(), After(), Report())}) == []
