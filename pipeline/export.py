@@ -45,13 +45,15 @@ I64 = npt.NDArray[np.int64]
 
 @dataclass
 class Trajectory:
-    """``pose`` rows are x y z qx qy qz qw (world <- base) at ``t_ns``; ``has_z`` when z was estimated."""
+    """``pose`` rows are x y z qx qy qz qw (world <- base) at ``t_ns``; ``has_z`` when z was estimated;
+    ``roll_pitch`` (N, 2) the Z-Y-X roll and pitch of an estimate (zeros for a planar one)."""
 
     name: str
     t_ns: I64
     pose: F64
     source: Path
     has_z: bool = True
+    roll_pitch: F64 | None = None
 
 
 def _warn(message: str) -> None:
@@ -62,6 +64,15 @@ def yaw_to_quat(yaw: npt.ArrayLike) -> F64:
     """(qx, qy, qz, qw) of a rotation about z."""
     half = 0.5 * np.asarray(yaw, dtype=np.float64)
     return np.stack([np.zeros_like(half), np.zeros_like(half), np.sin(half), np.cos(half)], axis=1)
+
+
+def ypr_to_quat(yaw: npt.ArrayLike, pitch: npt.ArrayLike, roll: npt.ArrayLike) -> F64:
+    """(qx, qy, qz, qw) of R = Rz(yaw) Ry(pitch) Rx(roll) (the odometry artifact's Z-Y-X angles)."""
+    cy, sy = np.cos(0.5 * np.asarray(yaw, np.float64)), np.sin(0.5 * np.asarray(yaw, np.float64))
+    cp, sp = np.cos(0.5 * np.asarray(pitch, np.float64)), np.sin(0.5 * np.asarray(pitch, np.float64))
+    cr, sr = np.cos(0.5 * np.asarray(roll, np.float64)), np.sin(0.5 * np.asarray(roll, np.float64))
+    return np.stack([sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+                     cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy], axis=1)
 
 
 # -- reading -----------------------------------------------------------------------------------------------------
@@ -90,18 +101,18 @@ def _planar(name: str, path: Path, schema: str, z_from: Trajectory | None, note:
     if (~keep).any():
         note(f"{name}: {int((~keep).sum())} of {len(keep)} poses are not valid estimates ({path}); left out")
     has_z = "z" in cols
-    if has_z:
-        z = t["z"].to_numpy().astype(np.float64)
-    elif z_from is not None and z_from.has_z and len(z_from.t_ns):
-        # a slam method corrects x, y, yaw of the odometry it started from; its z is the odometry's
+    zeros = np.zeros_like(x)
+    z, roll, pitch = (t[c].to_numpy().astype(np.float64) if c in cols else zeros for c in ("z", "roll", "pitch"))
+    if not has_z and z_from is not None and z_from.has_z and len(z_from.t_ns):
+        # a slam method corrects x, y, yaw of the odometry it started from; its z, roll, pitch are the odometry's
         at = np.searchsorted(z_from.t_ns, t_ns).clip(0, len(z_from.t_ns) - 1)
         has_z = bool(np.all(z_from.t_ns[at][keep] == t_ns[keep]))
-        z = z_from.pose[at, 2] if has_z else np.zeros_like(x)
-    else:
-        z = np.zeros_like(x)
+        if has_z and z_from.roll_pitch is not None:
+            z, roll, pitch = z_from.pose[at, 2], z_from.roll_pitch[at, 0], z_from.roll_pitch[at, 1]
     order = np.argsort(t_ns[keep], kind="stable")
-    pose = np.column_stack([x, y, z, yaw_to_quat(yaw)])[keep][order]
-    return Trajectory(name, t_ns[keep][order], pose, path, has_z)
+    pose = np.column_stack([x, y, z, ypr_to_quat(yaw, pitch, roll)])[keep][order]
+    rp = np.column_stack([roll, pitch])[keep][order]
+    return Trajectory(name, t_ns[keep][order], pose, path, has_z, rp)
 
 
 def estimates(store: RunStore, note: Note = _warn) -> list[Trajectory]:

@@ -1,7 +1,10 @@
 """Parameter sweeps: ``workflows/sweep_*.toml`` with a ``[sweep]`` table of ``"stage.param" = [values]``.
 
 ``expand_sweep`` is a pure function from the ``[sweep]`` table to the list of parameter points (the
-Cartesian product, first key slowest), each an override dict ``{stage: {param: value}}``. Every point
+Cartesian product, first key slowest), each an override dict ``{stage: {param: value}}``. A key that names a
+stage alone takes a list of tables, each one combination of that stage's parameters (``voxel =
+[{trajectory = "groundtruth"}, {trajectory = "slam", slam_method = "rich_slam"}]``): combinations that a
+product of per-parameter lists would repeat or get wrong. Every point
 runs into its own run store ``runs/sweeps/<workflow>/<point>/<seq>/``; stages whose key is the same for
 every point (usually everything upstream of the swept stage) run once in the main run store and are
 hard-linked into the points. The points go through ``pipeline.executors`` (inline by default, a process
@@ -51,6 +54,12 @@ def flatten_sweep(sweep: Mapping[str, Any], prefix: str = "") -> dict[str, list[
         if isinstance(value, Mapping):
             out.update(flatten_sweep(value, name))
             continue
+        if "." not in name and isinstance(value, list) and value and all(isinstance(v, Mapping) for v in value):
+            # stage = [{param = value, ...}, ...]: listed combinations of one stage's parameters
+            if any(not v or any(isinstance(x, Mapping) for x in v.values()) for v in value):
+                raise UserError(f"[sweep] {name}: each entry must be a non-empty table of parameter = value")
+            out[name] = [dict(v) for v in value]
+            continue
         if name.count(".") != 1:
             raise UserError(f"[sweep] {name}: expected 'stage.param' = [values]")
         if not isinstance(value, list) or not value:
@@ -67,6 +76,9 @@ def expand_sweep(sweep: Mapping[str, Any]) -> list[Overrides]:
     for combo in itertools.product(*(flat[k] for k in keys)):
         point: Overrides = {}
         for key, value in zip(keys, combo, strict=True):
+            if "." not in key:  # a listed combination of the stage's parameters
+                point.setdefault(key, {}).update(value)
+                continue
             stage, param = key.split(".", 1)
             point.setdefault(stage, {})[param] = value
         points.append(point)
@@ -142,11 +154,12 @@ def run_sweep(
     module, _, func = registry.partition(":")
     stages = getattr(importlib.import_module(module), func)()
     points = sweep_points(wf.sweep)
-    for key in flatten_sweep(wf.sweep):
-        stage, param = key.split(".", 1)
+    for key, values in flatten_sweep(wf.sweep).items():
+        stage, _, param = key.partition(".")
         if stage not in stages:
             raise UserError(f"[sweep] {key}: unknown stage '{stage}'")
-        check_param_names(stage, {param: None}, stages, f"workflow {wf.path} [sweep]")
+        names = {param: None} if param else {k: None for v in values for k in v}
+        check_param_names(stage, names, stages, f"workflow {wf.path} [sweep]")
     base = overrides or {}
     root = sweep_root(runs_dir, wf.name)
     targets = tuple(wf.stages) or ("all",)
@@ -170,7 +183,10 @@ def run_sweep(
 
     console.print(f"sweep {wf.name}: {len(points)} point(s) x {len(seqs)} sequence(s) on the {ex.name} executor")
     results = run_all(tasks, ex, done)
-    table = gather_sweep(root, points, [s.name for s in seqs])
+    gathered = swept_sequences(root, points, [s.name for s in seqs])
+    if len(gathered) > len(seqs):
+        console.print(f"gathering {len(gathered)} sequences (with those of earlier calls): {', '.join(gathered)}")
+    table = gather_sweep(root, points, gathered)
     metrics = None
     figs: list[Path] = []
     if table is not None:
@@ -179,6 +195,21 @@ def run_sweep(
         metrics = write_artifact(table, root / "sweep_metrics.parquet", "metrics")
         figs = plot_sweep(wf, root, points, [s.name for s in seqs], table.to_pylist())
     return SweepRun(root, points, results, metrics, figs)
+
+
+def swept_sequences(root: Path, points: Sequence[SweepPoint], current: Sequence[str],
+                    stage: str = "evaluate") -> list[str]:
+    """``current``, then every other sequence that an earlier call of the same sweep left results for (so the
+    gathered table and figure cover every sequence swept so far, one call or many)."""
+    seen = list(current)
+    for p in points:
+        d = root / p.name
+        if not d.is_dir():
+            continue
+        for sub in sorted(d.iterdir()):
+            if sub.name not in seen and (sub / stage / "metrics.parquet").exists():
+                seen.append(sub.name)
+    return seen
 
 
 def gather_sweep(root: Path, points: Sequence[SweepPoint], seqs: Sequence[str], stage: str = "evaluate") -> Any:

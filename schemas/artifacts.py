@@ -77,9 +77,11 @@ ARTIFACTS: dict[str, ArtifactSchema] = {
             "radar ego-velocity per scan in the radar frame",
         ),
         ArtifactSchema(
-            "odometry", "odometry", "odometry.parquet", 1,
-            _s(("scan", I32), ("t_ns", I64), ("x", F64), ("y", F64), ("yaw", F64)),
-            "SE(2) odometry world<-base at radar scan times",
+            "odometry", "odometry", "odometry.parquet", 2,
+            _s(("scan", I32), ("t_ns", I64), ("x", F64), ("y", F64), ("z", F64), ("roll", F64), ("pitch", F64),
+               ("yaw", F64)),
+            "odometry world<-base at radar scan times: x, y, yaw anchored in the plane; z, roll, pitch (Z-Y-X) "
+            "as estimated (z shifted with the anchor)",
         ),
         ArtifactSchema(
             "trajectory", "slam", "trajectory.parquet", 1,

@@ -164,7 +164,9 @@ def write_synthetic_run(runs: Path, seq: str = "synth", duration: float = 30.0, 
     def traj(a: F64) -> dict:
         return {"scan": scans, "t_ns": s.scan_t, "x": a[:, 0], "y": a[:, 1], "yaw": a[:, 2]}
 
-    write_stage(runs, seq, "odometry", {"odometry.parquet": (traj(odo), "odometry")})
+    zeros = np.zeros(len(scans))
+    write_stage(runs, seq, "odometry", {"odometry.parquet": ({**traj(odo), "z": zeros, "roll": zeros, "pitch": zeros},
+                                                             "odometry")})
     slam_files: dict = {f"trajectory_{m}.parquet": ({**traj(a), "n_eff": np.ones(len(scans))}, "trajectory")
                         for m, a in (("rich_slam", slam), ("fastslam_grid", drifted(truth, ts, 0.005, 1.0, (0, 0, 0))))}
     slam_files["trajectory.parquet"] = slam_files["trajectory_rich_slam.parquet"]

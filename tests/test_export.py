@@ -36,9 +36,10 @@ def write_run(root: Path, gt: bool = True, odo_z: bool = False, slam: bool = Fal
         rows = {k: v[:0] for k, v in rows.items()}
     write_artifact(rows, st.stage_dir("ingest") / "groundtruth.parquet", "groundtruth")
     odo = {"scan": np.arange(N, dtype=np.int32), "t_ns": SCAN_T, "x": np.arange(N) * 1.0, "y": np.ones(N),
-           "yaw": np.linspace(0, 1, N)}
-    if odo_z:
+           "yaw": np.linspace(0, 1, N), "z": np.zeros(N), "roll": np.zeros(N), "pitch": np.zeros(N)}
+    if odo_z:  # an odometry that estimated height and attitude
         odo["z"] = 1.0 + 0.01 * np.arange(N)
+        odo["roll"], odo["pitch"] = np.full(N, 0.05), np.full(N, -0.03)
     write_artifact(odo, st.stage_dir("odometry") / "odometry.parquet", "odometry")
     if slam:  # as the slam stage writes them: every method, the odometry replayed, trajectory.parquet = main's
         for name, dx in (("odometry", 0.0), ("rich_slam", 0.5), ("fastslam_grid", 0.25)):
@@ -105,16 +106,30 @@ def test_each_trajectory_written_once(tmp_path: Path) -> None:
     assert any("also holds slam.tum from an earlier export" in n for n in notes)
 
 
-def test_z_from_the_estimate_or_its_odometry_else_said(tmp_path: Path) -> None:
+def test_slam_poses_take_the_odometrys_z_roll_and_pitch(tmp_path: Path) -> None:
+    """A slam method estimates x, y, yaw; the exported 3D pose takes z, roll, pitch of its odometry (issue 29)."""
+    from scipy.spatial.transform import Rotation
+
     _, notes = run_export(write_run(tmp_path / "a", odo_z=True, slam=True), "tum", tmp_path / "a" / "out")
     z = 1.0 + 0.01 * np.arange(N)
-    np.testing.assert_allclose(np.loadtxt(tmp_path / "a" / "out" / "odometry.tum")[:, 3], z)
-    np.testing.assert_allclose(np.loadtxt(tmp_path / "a" / "out" / "rich_slam.tum")[:, 3], z)  # the odometry's z
+    odo = np.loadtxt(tmp_path / "a" / "out" / "odometry.tum")
+    slam = np.loadtxt(tmp_path / "a" / "out" / "rich_slam.tum")
+    np.testing.assert_allclose(odo[:, 3], z)
+    np.testing.assert_allclose(slam[:, 3], z)  # the odometry's z
+    ypr = Rotation.from_quat(slam[:, 4:8]).as_euler("ZYX")
+    np.testing.assert_allclose(ypr[:, 0], np.linspace(0, 1, N), atol=1e-7)  # the slam method's own yaw
+    np.testing.assert_allclose(ypr[:, 1], -0.03, atol=1e-7)  # the odometry's pitch
+    np.testing.assert_allclose(ypr[:, 2], 0.05, atol=1e-7)  # and roll
     assert not any("without z" in n for n in notes)
-    _, notes = run_export(write_run(tmp_path / "b", slam=True), "tum", tmp_path / "b" / "out")
+
+
+def test_an_estimate_without_odometry_is_planar_and_said(tmp_path: Path) -> None:
+    store = write_run(tmp_path / "b", slam=True)
+    (store.stage_dir("odometry") / "odometry.parquet").unlink()
+    _, notes = run_export(store, "tum", tmp_path / "b" / "out")
     assert np.all(np.loadtxt(tmp_path / "b" / "out" / "rich_slam.tum")[:, 3] == 0)
     (planar,) = [n for n in notes if "without z" in n]
-    assert planar.startswith("odometry, fastslam_grid, rich_slam: planar estimates")
+    assert planar.startswith("fastslam_grid, odometry, rich_slam: planar estimates")  # odometry: the slam replay
     assert "ground truth averages z = 1.21 m" in planar
     assert "--project_to_plane xy" in planar
 
@@ -124,13 +139,14 @@ def test_no_ground_truth_writes_no_groundtruth_file(tmp_path: Path) -> None:
     assert [f.name for f in files] == ["odometry.tum"]
     assert not (tmp_path / "out" / "groundtruth.tum").exists()
     assert any(n.startswith("no ground truth in ") and "groundtruth.tum not written" in n for n in notes)
-    assert "odometry: planar estimates without z, written with z = 0" in notes  # no hint at a missing file
+    assert not any("without z" in n for n in notes)  # the odometry is a 3D estimate
 
 
 def test_invalid_poses_and_uncovered_stamps_are_left_out_and_said(tmp_path: Path) -> None:
     store = write_run(tmp_path)
     odo = {"scan": np.arange(N + 1, dtype=np.int32), "t_ns": np.r_[SCAN_T, GT_T[-1] + 3_000_000_000],
            "x": np.r_[np.arange(N) * 1.0, 0.0], "y": np.ones(N + 1), "yaw": np.zeros(N + 1),
+           "z": np.zeros(N + 1), "roll": np.zeros(N + 1), "pitch": np.zeros(N + 1),
            "valid": np.r_[np.ones(N, bool), True]}
     odo["valid"][3] = False
     odo["x"][4] = np.nan

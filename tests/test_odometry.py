@@ -104,6 +104,12 @@ def test_odometry_stage_ekf_anchored_at_groundtruth(circle_log, tmp_path: Path) 
     x, y = odo["x"].to_numpy(), odo["y"].to_numpy()
     assert np.hypot(x[0] - pos[0, 0], y[0] - pos[0, 1]) < 1e-4  # anchored at (interpolated) ground truth
     assert np.abs(np.hypot(x - pos[:, 0], y - pos[:, 1])).max() < 0.3
+    # the 3D part (issue 29): the circle is flown level at the ground truth's height
+    z, roll, pitch = (odo[c].to_numpy() for c in ("z", "roll", "pitch"))
+    gt = read_artifact(out / "ingest" / "groundtruth.parquet", "groundtruth")
+    assert abs(z[0] - np.interp(scan_t[0], gt["t_ns"].to_numpy(), gt["z"].to_numpy())) < 1e-6  # z anchored too
+    assert np.abs(z - z[0]).max() < 0.2
+    assert np.abs(np.degrees(roll)).max() < 2.0 and np.abs(np.degrees(pitch)).max() < 2.0
     stats = json.loads((out / "odometry" / "manifest.json").read_text())["stats"]
     assert stats["anchor"] == "groundtruth" and stats["drift"]["drift_pct_of_distance"] < 2.0
     out2 = run_stages(bag, tmp_path / "runs2", ["odometry"], {"odometry": {"anchor": "origin"}})

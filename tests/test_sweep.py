@@ -45,6 +45,20 @@ def test_dotted_and_quoted_keys_and_list_values() -> None:
     assert point_name({"a": {"seed": 1}, "b": {"seed": 2}}) == "a.seed=1,b.seed=2"
 
 
+def test_listed_combinations_of_one_stage() -> None:
+    import tomllib
+
+    doc = tomllib.loads('[sweep]\nvoxel = [{trajectory = "groundtruth"}, {trajectory = "slam", slam_method = "g"}]\n'
+                        '"evaluate.seed" = [0, 1]\n')
+    pts = sweep_points(doc["sweep"])
+    assert [p.name for p in pts] == ["trajectory=groundtruth,seed=0", "trajectory=groundtruth,seed=1",
+                                     "trajectory=slam,slam_method=g,seed=0", "trajectory=slam,slam_method=g,seed=1"]
+    assert pts[2].overrides == {"voxel": {"trajectory": "slam", "slam_method": "g"}, "evaluate": {"seed": 0}}
+    assert pts[0].values() == {"voxel.trajectory": "groundtruth", "evaluate.seed": 0}
+    with pytest.raises(UserError, match="non-empty table"):
+        expand_sweep({"voxel": [{}]})
+
+
 def test_bad_sweep_tables() -> None:
     with pytest.raises(UserError, match="non-empty list"):
         expand_sweep({"slam.n_particles": 5})
@@ -57,7 +71,7 @@ def test_shipped_sweep_workflows_expand_against_the_real_stages() -> None:
     from pipeline.registry import load_stages
 
     stages = load_stages()
-    for name, n in (("sweep_fig6", 21), ("sweep_fig7", 9)):
+    for name, n in (("sweep_fig6", 21), ("sweep_fig7", 9), ("sweep_radar_only", 4)):
         wf = load_workflow(name)
         assert wf.stages == ["evaluate"] and len(sweep_points(wf.sweep)) == n
         for p in sweep_points(wf.sweep):
@@ -140,6 +154,11 @@ def test_sweep_runs_points_shares_upstream_and_gathers(tmp_path: Path) -> None:
     # a second run is cached everywhere
     again = run_sweep(str(wf), [seq], runs, registry="tests.test_sweep:toy_registry")
     assert all(o.action == "cached" for r in again.results for o in r.outcomes)
+    # another sequence swept in a later call: the gathered table holds both
+    other = SequenceInfo(name="toyseq2", kind="source", source=Path("/nonexistent"))
+    res2 = run_sweep(str(wf), [other], runs, registry="tests.test_sweep:toy_registry")
+    assert res2.metrics is not None
+    assert {r["seq"] for r in read_artifact(res2.metrics, "metrics").to_pylist()} == {"toyseq", "toyseq2"}
 
 
 def test_sweep_rejects_unknown_parameters(tmp_path: Path) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -94,31 +95,66 @@ def test_lidar_map_equals_octomap_on_the_stage_inputs(gt_run: tuple[Path, dict],
     assert len(got ^ ref) <= 3, (len(got ^ ref), len(ref))  # equal on these scans; allow rare edge ties
 
 
+def _write_odometry(odo: Path, gt: Any, level: bool = False, t_shift_ns: int = 0) -> None:
+    """The ground truth written as an odometry artifact (x, y, yaw, and z, roll, pitch unless ``level``)."""
+    q = np.stack([gt.column(c).to_numpy() for c in ("qx", "qy", "qz", "qw")], 1)
+    yaw, pitch, roll = Rotation.from_quat(q).as_euler("ZYX").T
+    n = gt.num_rows
+    odo.mkdir(exist_ok=True)
+    zero = np.zeros(n)
+    write_artifact({"scan": np.arange(n, dtype=np.int32), "t_ns": gt.column("t_ns").to_numpy() + t_shift_ns,
+                    "x": gt.column("x").to_numpy(), "y": gt.column("y").to_numpy(), "yaw": yaw,
+                    "z": zero if level else gt.column("z").to_numpy(), "roll": zero if level else roll,
+                    "pitch": zero if level else pitch}, odo / "odometry.parquet", "odometry")
+
+
+def _keys(points: Any) -> set[tuple[int, ...]]:
+    return {tuple(k) for k in coord_to_key(points, RES).tolist()}
+
+
 def test_voxel_stage_odometry_trajectory(tmp_path: Path, ingest_dir: Path, gt_run: tuple[Path, dict]) -> None:
-    """A radar-only map along an SE(2) trajectory (here the ground truth's x, y, yaw)."""
+    """A radar-only map along the odometry's 3D pose (here the ground truth written as odometry) is the
+    ground-truth map; the level lift (zero roll and pitch at one height) is not."""
     params = VoxelParams(trajectory="odometry")
     assert STAGE.input_stages(params) == ("ingest", "odometry")
-    assert STAGE.input_stages(VoxelParams(trajectory="slam", radar_source="filtered")) == ("ingest", "slam", "filter")
+    assert STAGE.input_stages(VoxelParams(trajectory="slam", radar_source="filtered")) == (
+        "ingest", "slam", "odometry", "filter")
+    assert STAGE.input_stages(VoxelParams(trajectory="slam", attitude="level")) == ("ingest", "slam")
     gt = read_artifact(ingest_dir / "groundtruth.parquet", "groundtruth")
-    q = np.stack([gt.column(c).to_numpy() for c in ("qx", "qy", "qz", "qw")], 1)
-    yaw = Rotation.from_quat(q).as_euler("zyx")[:, 0]
-    odo = tmp_path / "odometry"
-    odo.mkdir()
-    n = gt.num_rows
-    write_artifact({"scan": np.arange(n, dtype=np.int32), "t_ns": gt.column("t_ns").to_numpy(),
-                    "x": gt.column("x").to_numpy(), "y": gt.column("y").to_numpy(), "yaw": yaw},
-                   odo / "odometry.parquet", "odometry")
-    out, stats = _run(tmp_path, params, {"ingest": ingest_dir, "odometry": odo})
-    assert stats["se2_height"] == pytest.approx(gt.column("z").to_numpy()[0])
+    _write_odometry(tmp_path / "odometry", gt)
+    out, stats = _run(tmp_path, params, {"ingest": ingest_dir, "odometry": tmp_path / "odometry"})
+    assert stats["attitude"] == "odometry" and stats["trajectory_coverage"] == 1.0
     radar_odo, _ = _map(out, "radar")
     radar_gt, _ = _map(gt_run[0], "radar")
-    a = {tuple(k) for k in coord_to_key(radar_odo, RES).tolist()}
-    b = {tuple(k) for k in coord_to_key(radar_gt, RES).tolist()}
-    # the same room up to the ground truth's small roll, pitch and height changes
-    assert len(a & b) > 0.3 * len(b)
-    assert np.percentile(distance_to_surfaces(radar_odo), 90) <= 0.3
+    a, b = _keys(radar_odo), _keys(radar_gt)
+    assert len(a ^ b) <= 0.02 * len(b)  # the same poses up to interpolation: the same map
     meta = read_artifact(out / "radar_map.parquet", "radar_map").schema.metadata
     assert meta[b"trajectory"] == b"odometry"
+    # level: zero roll and pitch at the first height, as before the 3D poses
+    level_dir = tmp_path / "level"
+    level_dir.mkdir()
+    out2, stats2 = _run(level_dir, VoxelParams(trajectory="odometry", attitude="level"),
+                        {"ingest": ingest_dir, "odometry": tmp_path / "odometry"})
+    assert stats2["se2_height"] == pytest.approx(gt.column("z").to_numpy()[0])
+    a2 = _keys(_map(out2, "radar")[0])
+    assert len(a2 & b) > 0.3 * len(b)  # the same room up to the ground truth's roll, pitch and height changes
+    assert len(a2 ^ b) > len(a ^ b)
+
+
+def test_voxel_stage_trajectory_that_misses_the_scans_or_a_method_not_run(tmp_path: Path, ingest_dir: Path) -> None:
+    gt = read_artifact(ingest_dir / "groundtruth.parquet", "groundtruth")
+    span = int(gt.column("t_ns").to_numpy()[-1] - gt.column("t_ns").to_numpy()[0])
+    _write_odometry(tmp_path / "odometry", gt, t_shift_ns=span // 2)  # covers about half the radar scans
+    with pytest.raises(UserError, match=r"covers \d+\.\d % of the \d+ radar scans \(voxel.min_coverage = 0.9\)"):
+        _run(tmp_path, VoxelParams(trajectory="odometry"), {"ingest": ingest_dir, "odometry": tmp_path / "odometry"})
+    assert not (tmp_path / "out" / "radar_map.parquet").exists()
+    slam = tmp_path / "slam"
+    slam.mkdir()
+    write_artifact({"scan": np.arange(3, dtype=np.int32), "t_ns": np.arange(3), "x": np.zeros(3), "y": np.zeros(3),
+                    "yaw": np.zeros(3), "n_eff": np.ones(3)}, slam / "trajectory_rich_slam.parquet", "trajectory")
+    with pytest.raises(UserError, match=r"slam method 'fastslam_grid' was not run \(ran: rich_slam\)"):
+        _run(tmp_path, VoxelParams(trajectory="slam", slam_method="fastslam_grid"),
+             {"ingest": ingest_dir, "odometry": tmp_path / "odometry", "slam": slam})
 
 
 def test_voxel_stage_bad_calibration(tmp_path: Path, ingest_dir: Path) -> None:

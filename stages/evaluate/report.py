@@ -137,8 +137,14 @@ def write_figures(records: Sequence[dict[str, Any]], out: Path, curves: Mapping[
 
 # -- sweeps -----------------------------------------------------------------------------------------------------
 def sweep_tables(records: Sequence[dict[str, Any]]) -> list[tuple[str, list[str], list[list[str]]]]:
-    """AUC per point and method (the sweep's point names as rows), and Fig. 6 means over the points."""
+    """AUC per point and method (the sweep's point names as rows), Fig. 6 means over the points, and the
+    radar-only map table when the points vary the voxel stage's trajectory."""
+    from stages.evaluate.radar_only import radar_only_table
+
     out = []
+    ro = radar_only_table(records)
+    if ro is not None:
+        out.append(ro)
     seqs = list(dict.fromkeys(str(r["seq"]) for r in records))
     head = [r for r in records if r["metric"] == "auc" and "@" not in str(r["method"])]
     if head:
@@ -181,10 +187,14 @@ def sweep_figures(kind: str, root: Path, name: str, description: str, points: Se
     if kind == "hyperparameter_grid":
         return [plot_hyperparameter_grid(root / f"{name}_{seq}.png", root, points, seq,
                                          str(meta.get("figure_method", "hilbert_gp")), records) for seq in seqs]
+    if kind == "map_vs_trajectory":
+        from stages.evaluate.radar_only import plot_map_vs_trajectory
+
+        return [plot_map_vs_trajectory(root / f"{name}.png", records, description)]
     raise ValueError(f"unknown sweep figure {kind!r}; known: {', '.join(SWEEP_FIGURES)}")
 
 
-SWEEP_FIGURES = ("auc_vs_features", "hyperparameter_grid")
+SWEEP_FIGURES = ("auc_vs_features", "hyperparameter_grid", "map_vs_trajectory")
 
 
 def plot_auc_vs_features(path: Path, records: Sequence[Mapping[str, Any]], seqs: Sequence[str],

@@ -32,7 +32,7 @@ from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams, StageReport, blas_threads, parquet_rows
 from schemas import read_artifact, write_artifact
 from stages.evaluate import figures, tables
-from stages.evaluate.trajectory import evaluate_trajectory, path_length, quat_to_yaw
+from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, path_length, quat_to_yaw
 
 if TYPE_CHECKING:
     from pipeline.sequences import SequenceInfo
@@ -226,6 +226,8 @@ class Evaluation:
             return
         aligned: dict[str, F64] = {}
         span: tuple[int, int] | None = None
+        odo_file = next((f for m, f, s in files if s == "odometry"), None)
+        anchored = odo_file is not None and _anchor_of(odo_file) == "groundtruth"
         for method, path, schema in files:
             t = read_artifact(path, schema)
             est_t = t["t_ns"].to_numpy()
@@ -239,6 +241,12 @@ class Evaluation:
             self.add("trajectory", method, "ate_pos_rmse_m", err.pos_rmse_m)
             self.add("trajectory", method, "ate_yaw_rmse_deg", err.yaw_rmse_deg)
             self.add("trajectory", method, "matched_frames", err.n_matched)
+            if anchored:  # every estimate starts at the ground-truth pose: its errors without alignment (the maps
+                # built along it live in that frame, so these are the errors the radar-only maps inherit)
+                pos_a, yaw_a = anchored_errors(est_t, xy, t["yaw"].to_numpy(), gt["t_ns"], gt_xy, gt["yaw"],
+                                               int(p.max_gt_gap_s * 1e9))
+                self.add("trajectory", method, "ate_pos_rmse_anchored_m", pos_a)
+                self.add("trajectory", method, "ate_yaw_rmse_anchored_deg", yaw_a)
             final = float(np.linalg.norm(err.xy_aligned[-1] - err.xy_gt[-1]))
             self.add("trajectory", method, "final_pos_error_m", final)
             ctx.stats.setdefault("alignment", {})[method] = {
@@ -574,6 +582,14 @@ class Evaluation:
                 method = r["method"].replace("@", "/features_")  # rff@64 -> metrics/rff/features_64/auc
                 ctx.recording.log(f"metrics/{method}/{r['metric']}", rr.Scalars([r["value"]]), static=True)
         ctx.stats["metrics"] = len(recs)
+
+
+def _anchor_of(odometry_file: Path) -> str:
+    """The odometry artifact's ``anchor`` metadata ('groundtruth' or 'origin'; '' when unrecorded)."""
+    import pyarrow.parquet as pq
+
+    meta = pq.read_schema(odometry_file).metadata or {}
+    return meta.get(b"anchor", b"").decode()
 
 
 def _manifest(stage_dir: Path) -> dict[str, Any]:

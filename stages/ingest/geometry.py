@@ -109,6 +109,15 @@ def yaw_of(R: F64) -> F64:
     return np.arctan2(R[..., 1, 0], R[..., 0, 0])
 
 
+def roll_pitch_of(R: F64) -> tuple[F64, F64]:
+    """Roll and pitch of rotation matrices (..., 3, 3) in the yaw-pitch-roll (Z-Y-X) convention,
+    R = Rz(yaw) Ry(pitch) Rx(roll): both unchanged by a rotation about the world z axis."""
+    R = np.asarray(R, dtype=np.float64)
+    pitch = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
+    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    return roll, pitch
+
+
 def wrap_angle(a: npt.ArrayLike) -> F64:
     """Angles wrapped to (-pi, pi]."""
     return np.asarray((np.asarray(a) + np.pi) % (2 * np.pi) - np.pi, dtype=np.float64)

@@ -23,7 +23,7 @@ from pydantic import Field
 from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams
 from schemas.io import read_artifact, write_artifact
-from stages.ingest.geometry import interpolate_poses, yaw_of
+from stages.ingest.geometry import interpolate_poses, roll_pitch_of, yaw_of
 from stages.odometry.ekf_rio import EkfConfig, run_ekf
 from stages.odometry.metrics import drift, se2_compose_anchor
 
@@ -82,7 +82,7 @@ class OdometryStage(Stage):
     description = "radar-inertial odometry (EKF-RIO) at radar scan times"
     inputs = ("ingest", "filter")
     Params = OdometryParams
-    version = "1"
+    version = "2"
     outputs = ("odometry.parquet",)
 
     def input_stages(self, params: StageParams) -> tuple[str, ...]:
@@ -99,6 +99,7 @@ class OdometryStage(Stage):
         else:
             scans, scan_t, T_wb, valid = self._from_ekf(ctx, base_from_imu, base_from_radar)
         x, y, yaw = T_wb[:, 0, 3], T_wb[:, 1, 3], yaw_of(T_wb[:, :3, :3])
+        z, roll, pitch = T_wb[:, 2, 3].copy(), *roll_pitch_of(T_wb[:, :3, :3])
 
         gt = read_artifact(ctx.input("ingest", "groundtruth.parquet"), "groundtruth")
         gt_t = gt["t_ns"].to_numpy()
@@ -112,6 +113,7 @@ class OdometryStage(Stage):
                 at = int(np.argmax(with_gt))  # first estimated pose that ground truth covers
                 ref = T_gt[at]
                 x, y, yaw = se2_compose_anchor(x, y, yaw, at, ref[0, 3], ref[1, 3], float(yaw_of(ref[:3, :3])))
+                z = z - z[at] + ref[2, 3]
                 anchored = "groundtruth"
                 ctx.stats["anchor_scan"] = int(scans[at])
             else:
@@ -120,9 +122,10 @@ class OdometryStage(Stage):
                 elif p.anchor == "groundtruth":  # a radar + IMU log: nothing to anchor to, nothing wrong
                     ctx.console.print("[dim]odometry: the log has no ground truth; anchored at the origin[/]")
                 x, y, yaw = se2_compose_anchor(x, y, yaw, first, 0.0, 0.0, 0.0)
-        write_artifact({"scan": scans.astype(np.int32), "t_ns": scan_t, "x": x, "y": y, "yaw": yaw,
-                        "valid": valid}, ctx.output("odometry.parquet"), "odometry",
-                       metadata={"anchor": anchored, "source": p.source})
+                z = z - z[first]
+        write_artifact({"scan": scans.astype(np.int32), "t_ns": scan_t, "x": x, "y": y, "z": z,
+                        "roll": roll, "pitch": pitch, "yaw": yaw, "valid": valid},
+                       ctx.output("odometry.parquet"), "odometry", metadata={"anchor": anchored, "source": p.source})
         ctx.stats["anchor"] = anchored
         ctx.stats["source"] = p.source
         ctx.stats["scans"] = len(scans)
@@ -134,7 +137,6 @@ class OdometryStage(Stage):
             d = ctx.stats["drift"]
             ctx.console.print(f"[dim]odometry: drift {d.get('drift_pct_of_distance')} % of "
                               f"{d.get('path_length_m')} m, yaw {d.get('yaw_drift_deg_per_min')} deg/min[/]")
-        z = np.zeros_like(x)
         ctx.recording.trajectory("world/odometry", scans, scan_t, np.stack([x, y, z], axis=1), color=(70, 130, 255))
 
     def _from_ekf(self, ctx: StageContext, base_from_imu: npt.NDArray[np.float64],

@@ -68,6 +68,40 @@ def interpolate_se2(
     return out, valid
 
 
+def interpolate_planar_attitude(
+    t_query: npt.ArrayLike, t: npt.ArrayLike, x: npt.ArrayLike, y: npt.ArrayLike, yaw: npt.ArrayLike,
+    t_att: npt.ArrayLike, z: npt.ArrayLike, roll: npt.ArrayLike, pitch: npt.ArrayLike,
+) -> tuple[FloatArray, BoolArray]:
+    """3D poses at ``t_query`` from a planar estimate (x, y, yaw at ``t``: a SLAM method's) and the height and
+    attitude of another (z, roll, pitch at ``t_att``: the odometry's), R = Rz(yaw) Ry(pitch) Rx(roll).
+
+    Each part is interpolated on its own stamps (linear x, y, z, unwrapped yaw, roll and pitch); ``valid`` marks
+    query times inside both time spans. A planar SLAM method corrects the odometry's x, y and yaw and leaves the
+    rest untouched, so its 3D pose is the odometry's with those three replaced.
+    """
+    tq = np.asarray(t_query, dtype=np.int64)
+    planar, valid = interpolate_se2(tq, t, x, y, yaw, 0.0)
+    ta = np.asarray(t_att, dtype=np.int64)
+    order = np.argsort(ta, kind="stable")
+    ta = ta[order]
+    keep = np.r_[True, np.diff(ta) > 0] if len(ta) else np.zeros(0, bool)
+    idx = order[keep]
+    ta = ta[keep]
+    valid = valid & ((tq >= ta[0]) & (tq <= ta[-1]) if len(ta) else np.zeros(len(tq), bool))
+    out = np.tile(np.eye(4), (len(tq), 1, 1))
+    if not np.any(valid):
+        return out, valid
+    ref = ta[0]
+    ts = (ta - ref).astype(np.float64)
+    tv = (tq[valid] - ref).astype(np.float64)
+    zi = np.interp(tv, ts, np.asarray(z, dtype=np.float64)[idx])
+    ri, pi = (np.interp(tv, ts, np.unwrap(np.asarray(v, dtype=np.float64)[idx])) for v in (roll, pitch))
+    th = np.arctan2(planar[valid, 1, 0], planar[valid, 0, 0])
+    out[valid, :3, :3] = Rotation.from_euler("ZYX", np.stack([th, pi, ri], axis=1)).as_matrix()
+    out[valid, 0, 3], out[valid, 1, 3], out[valid, 2, 3] = planar[valid, 0, 3], planar[valid, 1, 3], zi
+    return out, valid
+
+
 def horizontal_fov_mask(points: npt.ArrayLike, axis: npt.ArrayLike, fov: float) -> BoolArray:
     """Points (sensor frame) whose horizontal bearing lies within ``fov / 2`` of the bearing of ``axis``.
 

@@ -10,9 +10,16 @@ Both maps are sparse log-odds voxel maps at 0.15 m (``voxel_map.py``) built alon
   of the lidar restricted to a horizontal field of view of 180 degrees centred on the radar boresight;
   always built along the ground truth (it is the reference map of the evaluation).
 
-SE(2) trajectories (odometry, slam) are lifted to SE(3) with zero roll and pitch and a constant base
-height ``se2_height`` (default: the first ground-truth height, i.e. the same initial condition the 2D
-trajectory is anchored to; 0 without ground truth). Poses at sensor times: linear position and slerp
+Radar-only maps (``trajectory = "odometry" | "slam"``): the planar estimate (x, y, yaw: the odometry's or a
+SLAM method's) is combined with the odometry's height, roll and pitch at the same radar scan times
+(``attitude = "odometry"``, default; ``interpolate_planar_attitude``). RICH-SLAM and the grid filter estimate
+only the planar pose and start from the odometry's; the EKF observes roll and pitch through gravity and the
+height through the radar's vertical velocity, so the best 3D pose available is the odometry's with its x, y
+and yaw replaced by the SLAM method's. A level lift (zero roll and pitch at the constant base height
+``se2_height``: default the first ground-truth height, 0 without ground truth) stays as ``attitude = "level"``;
+on the handheld ColoRadar rig, whose roll and pitch reach several degrees, it tilts far walls by decimetres.
+A trajectory that covers less than ``min_coverage`` of the radar scans is an error; a named SLAM method that
+was not run is an error that lists the ones that were. Poses at sensor times: linear position and slerp
 rotation between ground-truth samples; scans outside the trajectory's time span are skipped (counted).
 
 Cost: the radar fan (10,816 rays to 10 m, about 1.1 M voxel crossings per scan) takes about 40 ms of
@@ -54,7 +61,7 @@ from pipeline.stage import Stage, StageContext, StageParams, parquet_rows
 from schemas.io import read_artifact, write_artifact
 from sources import mapset
 from stages.voxel import octomap_io
-from stages.voxel.poses import horizontal_fov_mask, interpolate_se2, interpolate_se3
+from stages.voxel.poses import horizontal_fov_mask, interpolate_planar_attitude, interpolate_se2, interpolate_se3
 from stages.voxel.radar_model import fan_directions, radar_scan_keys
 from stages.voxel.raycast import scan_update_keys
 from stages.voxel.voxel_map import SensorModel, VoxelMap
@@ -78,8 +85,16 @@ class VoxelParams(StageParams):
     slam_method: str = Field(
         "", description="with trajectory=slam: read trajectory_<method>.parquet ('' = trajectory.parquet)"
     )
+    attitude: Literal["odometry", "level"] = Field(
+        "odometry", description="with trajectory=odometry|slam: z, roll and pitch from the odometry (its EKF's 3D "
+        "pose) or 'level' (zero roll and pitch at the constant height se2_height)"
+    )
     se2_height: float | None = Field(
-        None, description="base height (m) for SE(2) trajectories; None = first ground-truth z (0 without ground truth)"
+        None, description="with attitude=level: base height (m); None = first ground-truth z (0 without ground truth)"
+    )
+    min_coverage: float = Field(
+        0.9, ge=0, le=1, description="with trajectory=odometry|slam: the least share of radar scans the trajectory "
+        "must cover (an error below it; the uncovered scans are skipped with a warning above it)"
     )
     radar_source: Literal["raw", "filtered"] = Field(
         "raw", description="radar points: ingest's raw radar.parquet (as the paper) or the filter stage's output"
@@ -117,7 +132,7 @@ class VoxelStage(Stage):
     description = "radar and lidar OctoMap-style voxel maps (RMap Sec. III-A)"
     inputs = ("ingest",)
     Params = VoxelParams
-    version = "2"
+    version = "3"
     outputs = ("radar_map.parquet", "lidar_map.parquet")
 
     def input_stages(self, params: StageParams) -> tuple[str, ...]:
@@ -127,6 +142,8 @@ class VoxelStage(Stage):
         extra: list[str] = []
         if params.trajectory in ("odometry", "slam"):
             extra.append(params.trajectory)
+        if params.trajectory == "slam" and params.attitude == "odometry":
+            extra.append("odometry")
         if params.radar_source == "filtered":
             extra.append("filter")
         return (*self.inputs, *extra)
@@ -238,20 +255,63 @@ class VoxelStage(Stage):
 
     # -- trajectories --------------------------------------------------------------------------------
     def _se2_poses(self, ctx: StageContext, p: VoxelParams, gt_xyz: F64) -> Any:
+        """Poses along the odometry or a SLAM method: their x, y, yaw with the odometry's z, roll and pitch
+        (``attitude = "odometry"``) or level at ``se2_height``."""
         if p.trajectory == "odometry":
-            tab = read_artifact(ctx.input("odometry", "odometry.parquet"), "odometry")
+            path = ctx.input("odometry", "odometry.parquet")
+            tab = read_artifact(path, "odometry")
         else:
             fname = f"trajectory_{p.slam_method}.parquet" if p.slam_method else "trajectory.parquet"
-            tab = read_artifact(ctx.input("slam", fname), "trajectory")
+            path = ctx.input_dirs["slam"] / fname
+            if not path.exists():
+                ran = sorted(f.stem.removeprefix("trajectory_") for f in path.parent.glob("trajectory_*.parquet"))
+                raise UserError(f"{path}: slam method '{p.slam_method}' was not run (ran: {', '.join(ran) or 'none'});"
+                                f" add it with --set 'slam.methods=[\"{p.slam_method}\"]' or pick one of those "
+                                f"with --set voxel.slam_method=NAME")
+            tab = read_artifact(path, "trajectory")
+        if "valid" in tab.column_names:
+            tab = tab.filter(tab.column("valid"))
         if tab.num_rows == 0:
-            raise UserError(f"voxel: the {p.trajectory} trajectory is empty; rerun `pipeline run {p.trajectory}`")
-        z = p.se2_height if p.se2_height is not None else (float(gt_xyz[0, 2]) if len(gt_xyz) else 0.0)
-        ctx.stats["se2_height"] = z
+            raise UserError(f"{path}: the {p.trajectory} trajectory is empty; rerun `pipeline run {p.trajectory} "
+                            f"--seq {ctx.seq.name} --force`")
         cols = {c: tab.column(c).to_numpy() for c in ("t_ns", "x", "y", "yaw")}
+        if p.attitude == "level":
+            z = p.se2_height if p.se2_height is not None else (float(gt_xyz[0, 2]) if len(gt_xyz) else 0.0)
+            ctx.stats["se2_height"] = z
 
-        def poses(t: npt.NDArray[np.int64]) -> tuple[F64, npt.NDArray[np.bool_]]:
-            return interpolate_se2(t, cols["t_ns"], cols["x"], cols["y"], cols["yaw"], z)
+            def poses(t: npt.NDArray[np.int64]) -> tuple[F64, npt.NDArray[np.bool_]]:
+                return interpolate_se2(t, cols["t_ns"], cols["x"], cols["y"], cols["yaw"], z)
 
+            return self._covering(ctx, p, path, poses)
+        odo = tab if p.trajectory == "odometry" else read_artifact(ctx.input("odometry", "odometry.parquet"),
+                                                                   "odometry")
+        if "valid" in odo.column_names:
+            odo = odo.filter(odo.column("valid"))
+        att = {c: odo.column(c).to_numpy() for c in ("t_ns", "z", "roll", "pitch")}
+        ctx.stats["attitude"] = "odometry"
+
+        def poses3(t: npt.NDArray[np.int64]) -> tuple[F64, npt.NDArray[np.bool_]]:
+            return interpolate_planar_attitude(t, cols["t_ns"], cols["x"], cols["y"], cols["yaw"], att["t_ns"],
+                                               att["z"], att["roll"], att["pitch"])
+
+        return self._covering(ctx, p, path, poses3)
+
+    @staticmethod
+    def _covering(ctx: StageContext, p: VoxelParams, path: Path, poses: Any) -> Any:
+        """``poses``, once checked to cover at least ``min_coverage`` of the radar scans (a one-line error if not)."""
+        name = "radar_filtered.parquet" if p.radar_source == "filtered" else "radar.parquet"
+        radar = read_artifact(ctx.input("filter" if p.radar_source == "filtered" else "ingest", name),
+                              "radar_filtered" if p.radar_source == "filtered" else "radar", columns=["scan", "t_ns"])
+        _, first = np.unique(radar.column("scan").to_numpy(), return_index=True)
+        t_scan = radar.column("t_ns").to_numpy()[first]
+        if len(t_scan):
+            share = float(poses(t_scan)[1].mean())
+            ctx.stats["trajectory_coverage"] = round(share, 4)
+            if share < p.min_coverage:
+                raise UserError(f"{path}: the {p.trajectory} trajectory covers {100 * share:.1f} % of the "
+                                f"{len(t_scan)} radar scans (voxel.min_coverage = {p.min_coverage:g}); rerun "
+                                f"`pipeline run {p.trajectory} --seq {ctx.seq.name} --force` or lower "
+                                f"voxel.min_coverage")
         return poses
 
     # -- radar ---------------------------------------------------------------------------------------
@@ -282,6 +342,9 @@ class VoxelStage(Stage):
                 n_pts += int(lengths[i])
                 advance(1)
         dt = time.perf_counter() - t0
+        if p.trajectory != "groundtruth" and valid.any():  # the 3D poses the radar-only map was built along
+            ctx.recording.trajectory("world/voxel/trajectory", scans[valid], t_ns[starts][valid],
+                                     T_wb[valid, :3, 3], color=(255, 160, 40))
         n_skip = int((~valid).sum())
         if n_skip:
             ctx.warn(f"{n_skip} of {len(scans)} radar scans lie outside the {p.trajectory} trajectory's time span "
