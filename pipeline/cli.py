@@ -28,7 +28,10 @@ from pipeline.sweep import command as sweep_command
 from pipeline.tables import Column, print_listing
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
+
     from pipeline.executors import TaskResult
+    from pipeline.stage import Stage
 
 app = typer.Typer(
     name="pipeline",
@@ -131,10 +134,28 @@ def run(
 
     results = run_all(tasks, ex, on_done)
     _print_results(results, runs)
+    for line in not_installed_warnings(results, registry):
+        console.print(f"[yellow]warning[/]: {escape(line)}", soft_wrap=True, highlight=False)
     if any(r.error_kind == "bug" for r in results):
         raise typer.Exit(1)
     if any(not r.ok for r in results):
         raise typer.Exit(2)
+
+
+def not_installed_warnings(results: list[TaskResult], registry: Mapping[str, Stage]) -> list[str]:
+    """One line per stage that did not run in some sequences because it is not installed (the per-sequence
+    skip rows and warnings stay inside the workers), with the reason and the install command."""
+    by_stage: dict[str, tuple[str, list[str]]] = {}
+    for r in results:
+        for o in r.outcomes:
+            if o.action == "skipped" and o.stage in registry and registry[o.stage].unavailable_reason():
+                by_stage.setdefault(o.stage, (o.reason, []))[1].append(r.name)
+    out = []
+    for stage, (reason, names) in by_stage.items():
+        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        out.append(f"'{stage}' did not run for {len(names)} sequence(s) ({shown}), and the stages that use it went "
+                   f"without it: {reason}")
+    return out
 
 
 def _first_line(res: TaskResult) -> str:

@@ -236,7 +236,8 @@ class RayExecutor(Executor):
         try:
             import ray
         except ImportError:
-            raise UserError("--executor ray needs Ray: pip install 'radar-pipeline[distributed]'") from None
+            raise UserError("--executor ray needs Ray, not installed (the 'distributed' extra: pip install -e "
+                            "'.[distributed]')") from None
         self.ray = ray
         self._started = False
         if not ray.is_initialized():

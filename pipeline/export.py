@@ -245,20 +245,14 @@ def export_tum(store: RunStore, out: Path, note: Note = _warn, groundtruth_stamp
 
 
 def write_ply(path: Path, xyz: npt.NDArray[np.float32], scalars: dict[str, npt.NDArray[np.float32]]) -> Path:
-    """Binary little-endian PLY with float x, y, z and extra float properties."""
-    names = ["x", "y", "z", *scalars]
-    dtype = np.dtype([(n, "<f4") for n in names])
-    rec = np.empty(len(xyz), dtype)
-    rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    for n, v in scalars.items():
-        rec[n] = v
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(xyz)}"]
-    header += [f"property float {n}" for n in names] + ["end_header"]
+    """Binary PLY (meshio, machine byte order) with float x, y, z and extra float properties, atomically."""
+    from sources.ply import ply_bytes
+
+    body = ply_bytes(xyz.astype(np.float32, copy=False), {n: v.astype(np.float32, copy=False)
+                                                           for n, v in scalars.items()}, binary=True)
     tmp = _atomic(path)
     try:
-        with tmp.open("wb") as f:
-            f.write(("\n".join(header) + "\n").encode())
-            f.write(rec.tobytes())
+        tmp.write_bytes(body)
         return _commit(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)

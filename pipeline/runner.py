@@ -6,6 +6,12 @@ provide what the stage needs or its parameters rule it out (:meth:`Stage.skip_re
 sequence has no log to ingest), or once its inputs are finished when they lack something
 (:meth:`Stage.skip_reason_for_inputs`, e.g. a radar + IMU log has no ground truth). ``run all`` then ends
 normally (exit 0); a stage named explicitly that cannot run is a user error.
+
+A stage that cannot run on this installation (:meth:`Stage.unavailable_reason`: a missing extra, e.g.
+``complete`` without torch) is different: the sequence would use it. A named target that needs it, also as
+an optional input (``evaluate`` uses ``complete``), is refused with a one-line user error that names it,
+the reason and the install command, before anything runs; ``run all`` goes on without it, with a skip row
+in the stage table and a warning on stderr for every stage that ran without it.
 """
 
 from __future__ import annotations
@@ -183,6 +189,17 @@ class Runner:
     def available(self, name: str) -> bool:
         return self.registry[name].unavailable_reason() is None
 
+    def left_out(self, plan: Iterable[str]) -> list[tuple[str, str, str]]:
+        """(stage, optional input, reason) for every optional input that a stage of ``plan`` would use for this
+        sequence (it is not skipped for it) but that cannot run on this installation."""
+        out = []
+        for name in plan:
+            for dep in self.registry[name].optional_inputs:
+                if dep not in self.registry or self.available(dep) or self.skipped(dep) is not None:
+                    continue
+                out.append((name, dep, self.registry[dep].unavailable_reason() or "unavailable"))
+        return out
+
     def key(self, name: str, _stack: tuple[str, ...] = ()) -> str:
         if name in _stack:
             raise RuntimeError(f"stage dependency cycle: {' -> '.join((*_stack, name))}")
@@ -298,6 +315,14 @@ class Runner:
             if reason:
                 raise UserError(f"stage '{name}' cannot run: {reason}")
         self._explicit = [t for t in targets if t != "all"]
+        needed = self.left_out(self.closure(self._explicit)) if self._explicit else []
+        if needed:
+            stage, dep, reason = needed[0]
+            raise UserError(f"stage '{stage}' needs '{dep}' for sequence '{self.seq.name}', and '{dep}' cannot run: "
+                            f"{reason}; `pipeline run all` goes on without it")
+        for _stage, dep, reason in self.left_out(self.closure(out)):
+            if not any(o.stage == dep for o in skipped):
+                skipped.append(StageOutcome(dep, "skipped", reason=reason))
         return list(dict.fromkeys(out)), skipped
 
     def run(self, targets: Iterable[str], force: Iterable[str] = (), keep_going: bool = True) -> list[StageOutcome]:
@@ -353,6 +378,13 @@ class Runner:
                     continue
                 outcomes.append(StageOutcome(name, "ran", seconds, why))
                 self.console.print(f"[green]{name:<9} done[/] in {seconds:.1f} s")
+        done = {o.stage: o for o in outcomes if o.action in ("ran", "cached", "reused")}
+        for stage, dep, reason in self.left_out(plan):
+            if stage in done:
+                o = done[stage]
+                o.reason = "; ".join(x for x in (o.reason, f"without '{dep}' (not installed)") if x)
+                self.console.print(f"[yellow]warning[/]: '{stage}' of {self.seq.name} went without '{dep}', which "
+                                   f"cannot run: {escape(reason)}")
         errors = [o for o in outcomes if o.error is not None]
         if errors:
             raise StagesFailed(outcomes, errors[0].error)  # type: ignore[arg-type]

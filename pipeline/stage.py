@@ -120,8 +120,9 @@ class Stage(ABC):
             return "not implemented yet"
         missing = self.missing_requirements()
         if missing:
-            extra = f" (pip install 'radar-pipeline[{self.requires_extra}]')" if self.requires_extra else ""
-            return f"needs {', '.join(missing)}{extra}"
+            extra = (f" (the '{self.requires_extra}' extra: pip install -e '.[{self.requires_extra}]', or make demo)"
+                     if self.requires_extra else "")
+            return f"needs {', '.join(missing)}, not installed{extra}"
         return None
 
     def code_version(self) -> str:

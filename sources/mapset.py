@@ -59,6 +59,78 @@ class MapSet:
     files: dict[str, Path] = field(default_factory=dict)
 
 
+# -- index.json: the one reader ---------------------------------------------------------------------------------
+#: the map set's index beside the scene folders (folders layout): scene -> split, environment, sources
+INDEX_FILE = "index.json"
+
+
+def read_index_file(path: Path) -> dict[str, dict[str, Any]]:
+    """The scene -> entry mapping of a map set's ``index.json``, as stored.
+
+    Every problem is a one-line :class:`UserError` naming the file: unreadable, not JSON, not an object of
+    objects.
+    """
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        why = " ".join(str(exc).split())
+        raise UserError(f"{path}: unreadable map-set index ({why}); restore it from the map set") from exc
+    if not isinstance(doc, dict):
+        raise UserError(f"{path}: not a map-set index (a JSON object of scene -> split, environment, "
+                        f"lidar_filtered; got {type(doc).__name__}); restore it from the map set")
+    bad = [str(k) for k, v in doc.items() if not isinstance(v, dict)]
+    if bad:
+        raise UserError(f"{path}: scene {bad[0]!r} is not an object (split, environment, lidar_filtered); restore "
+                        "the index from the map set")
+    return doc
+
+
+def lidar_filtered_source(entry: dict[str, Any]) -> str:
+    """Where an index entry says the scene's ``lidar_filtered`` came from: ``map`` (the authors' map file,
+    the default) or the entry's text for a stand-in (e.g. "union of 381 published gt patches")."""
+    lf = entry.get("lidar_filtered", {})
+    return str(lf.get("source", "map")) if isinstance(lf, dict) else "map"
+
+
+def rebuilt_scenes(index: dict[str, dict[str, Any]]) -> set[str]:
+    """Scenes of an index whose ``lidar_filtered`` was rebuilt (a source other than ``map``)."""
+    return {s for s, v in index.items() if lidar_filtered_source(v) != "map"}
+
+
+@dataclass(frozen=True)
+class SceneInfo:
+    name: str
+    environment: str
+    split: str
+    #: how the ground-truth map was made ("map" or the stand-in rebuilt from published patches)
+    gt_source: str
+
+
+def read_index(root: str | Path) -> dict[str, SceneInfo]:
+    """The scenes of a map set (``--maps``) that have radar and lidar_filtered files, by name (sorted).
+
+    Unlike :func:`read_map_set`, which reads one scene, this needs the index and a split and environment
+    for every scene in it (training and the Table III script choose scenes by them).
+    """
+    root = Path(root)
+    index = root / INDEX_FILE
+    if not root.is_dir():
+        raise UserError(f"--maps {root}: not a folder; point it at a map set such as ../shared/data/coloradar_maps")
+    if not index.is_file():
+        raise UserError(f"--maps {root}: no {INDEX_FILE} (scene -> split and environment); is this a map set?")
+    raw = read_index_file(index)
+    out: dict[str, SceneInfo] = {}
+    for name, v in sorted(raw.items()):
+        if "split" not in v or "environment" not in v:
+            raise UserError(f"{index}: scene {name!r} has no split or environment")
+        if (root / name / "radar.parquet").is_file() and (root / name / "lidar_filtered.parquet").is_file():
+            out[name] = SceneInfo(name, str(v["environment"]), str(v["split"]), lidar_filtered_source(v))
+    if not out:
+        raise UserError(f"--maps {root}: no scene with radar.parquet and lidar_filtered.parquet")
+    return out
+
+
 def scene_files(root: Path, scene: str, layout: Layout) -> dict[str, Path]:
     """Paths of every file of ``scene`` in ``layout`` (whether they exist or not)."""
     if layout == "authors":
@@ -146,7 +218,7 @@ def read_map_set(root: Path, scene: str) -> MapSet:
             raise UserError(f"{files[k]}: no {k} in scene '{scene}'; download the file again")
         arrays[k] = pts
     meta = _index_entry(root, scene, layout)
-    lf = meta.get("lidar_filtered", {}).get("source", "map") if isinstance(meta.get("lidar_filtered"), dict) else "map"
+    lf = lidar_filtered_source(meta)
     radar, lidar_f, poses, traj = (arrays[k] for k in ("radar", "lidar_filtered", "poses", "trajectory"))
     assert radar is not None and lidar_f is not None and poses is not None and traj is not None
     return MapSet(scene=scene, layout=layout, root=root, radar=radar, lidar_filtered=lidar_f, poses=poses,
@@ -211,19 +283,13 @@ def _read_poses(path: Path, layout: Layout) -> F64:
 
 
 def _index_entry(root: Path, scene: str, layout: Layout) -> dict[str, Any]:
-    """The scene's entry of ``index.json`` (folders layout), or {}."""
+    """The scene's entry of ``index.json`` (folders layout), or {} (no index, or the scene not in it)."""
     if layout != "folders":
         return {}
-    scene_dir = scene_files(root, scene, layout)["radar"].parent
-    path = scene_dir.parent / "index.json"
+    path = scene_files(root, scene, layout)["radar"].parent.parent / INDEX_FILE
     if not path.is_file():
         return {}
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: unreadable index ({exc}); fix or remove it") from exc
-    entry = doc.get(scene, {}) if isinstance(doc, dict) else {}
-    return entry if isinstance(entry, dict) else {}
+    return read_index_file(path).get(scene, {})
 
 
 def fingerprint(root: Path, scene: str) -> dict[str, Any]:
@@ -237,7 +303,7 @@ def fingerprint(root: Path, scene: str) -> dict[str, Any]:
         if p.is_file():
             st = p.stat()
             out[k] = f"{p}:{st.st_size}:{st.st_mtime_ns}"
-    index = files["radar"].parent.parent / "index.json" if layout == "folders" else None
+    index = files["radar"].parent.parent / INDEX_FILE if layout == "folders" else None
     if index is not None and index.is_file():
         st = index.stat()
         out["index"] = f"{st.st_size}:{st.st_mtime_ns}"

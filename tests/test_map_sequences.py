@@ -115,11 +115,10 @@ SCENE = "toy_run0"
 
 
 def _write_ply(path: Path, pts: np.ndarray) -> None:
-    from plyfile import PlyData, PlyElement
+    """An ASCII, vertex-only, double-precision PLY like the authors' (Open3D) files."""
+    from sources.ply import write_ply
 
-    v = np.empty(len(pts), dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")])
-    v["x"], v["y"], v["z"] = pts.T
-    PlyData([PlyElement.describe(v, "vertex")], text=True, comments=["Created by Open3D"]).write(str(path))
+    write_ply(path, np.asarray(pts, np.float64), binary=False)
 
 
 def toy_scene(root: Path, n: int = 300) -> Path:
@@ -205,6 +204,54 @@ def test_bad_shared_layout_files(tmp_path: Path) -> None:
         mapset.read_map_set(tmp_path / "maps", SCENE)
 
 
+def _folder_scene(maps: Path, name: str = SCENE) -> None:
+    scene = maps / name
+    scene.mkdir(parents=True)
+    rng = np.random.default_rng(2)
+    for f in ("radar", "lidar_filtered", "poses", "trajectory"):
+        pts = rng.normal(size=(20, 3))
+        pq.write_table(pa.table({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}), scene / f"{f}.parquet")
+
+
+def test_index_json_has_one_reader_for_scenes_and_sets(tmp_path: Path) -> None:
+    """``sources.mapset`` reads index.json for one scene (read_map_set), for a map set (read_index) and for the
+    rebuilt-ground-truth marks (rebuilt_scenes); the callers in stages/ import it instead of parsing it."""
+    maps = tmp_path / "maps"
+    _folder_scene(maps)
+    _folder_scene(maps, "other_run1")
+    entry = {"split": "test", "environment": "toy", "lidar_filtered": {"source": "union of 3 published gt patches"}}
+    (maps / "index.json").write_text(json.dumps({SCENE: entry, "other_run1": {"split": "train", "environment": "o"}}))
+    ms = mapset.read_map_set(maps, SCENE)
+    assert (ms.split, ms.environment, ms.lidar_filtered_source) == ("test", "toy", "rebuilt")
+    info = mapset.read_index(maps)
+    assert list(info) == ["other_run1", SCENE] and info[SCENE].gt_source == entry["lidar_filtered"]["source"]
+    assert info["other_run1"].gt_source == "map"
+    assert mapset.rebuilt_scenes(mapset.read_index_file(maps / "index.json")) == {SCENE}
+    from stages.complete import maps as complete_maps
+    from stages.evaluate import rmap_results
+
+    assert not hasattr(rmap_results, "read_index") and not hasattr(complete_maps, "read_index")  # the old readers
+
+
+@pytest.mark.parametrize("case, expect", [
+    ("not_json", "unreadable map-set index"),
+    ("list", "not a map-set index"),
+    ("entry", "scene 'toy_run0' is not an object"),
+])
+def test_bad_index_json_is_one_line_error_for_every_reader(tmp_path: Path, case: str, expect: str) -> None:
+    maps = tmp_path / "maps"
+    _folder_scene(maps)
+    index = maps / "index.json"
+    index.write_text({"not_json": '{"toy_run0": {"split": "te', "list": "[1, 2]",
+                      "entry": json.dumps({SCENE: "test"})}[case])
+    for read in (lambda: mapset.read_map_set(maps, SCENE), lambda: mapset.read_index(maps),
+                 lambda: mapset.read_index_file(index)):
+        with pytest.raises(UserError) as info:
+            read()
+        message = str(info.value)
+        assert message.startswith(str(index)) and expect in message and "\n" not in message, message
+
+
 def test_rmap_root_unset_wrong_or_without_the_scene(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     seq = SequenceInfo(name=f"rmap_{SCENE}", kind="rmap", scene=SCENE)
     monkeypatch.delenv("RMAP_ROOT", raising=False)
@@ -230,6 +277,48 @@ def test_cli_map_errors_exit_2_with_one_line(tmp_path: Path) -> None:
     err = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
     assert len(err) == 1 and "RMAP_ROOT is not set" in err[0] and "Traceback" not in r.stderr
     assert not (tmp_path / "runs" / "rmap_arpg_lab_run0" / "voxel").exists()
+
+
+def test_without_the_learn_extra_completion_is_named_not_dropped(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 28: without torch, `run evaluate` on a map sequence used to run voxel, patches and evaluate, leave
+    the completion out and exit 0. Simulated by the import check saying torch is missing (torch stays)."""
+    from pipeline import cli
+    from stages.complete.stage import CompleteStage
+
+    monkeypatch.setattr(CompleteStage, "missing_requirements", lambda self: ["torch", "safetensors"])
+    monkeypatch.setenv("COLUMNS", "250")
+    root = toy_scene(tmp_path / "scene")
+    runs = tmp_path / "runs"
+    install = "needs torch, safetensors, not installed (the 'learn' extra: pip install -e '.[learn]', or make demo)"
+
+    def main(*args: str) -> int:
+        monkeypatch.setattr(sys, "argv", ["pipeline", *args, "--source", str(root), "--runs-dir", str(runs)])
+        try:
+            cli.main()
+        except SystemExit as exc:
+            return int(exc.code or 0)
+        return 0
+
+    # the request needs the completion: exit 2, one line, nothing run
+    assert main("run", "evaluate") == 2
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert lines == [f"error: stage 'evaluate' needs 'complete' for sequence 'rmap_{SCENE}', and 'complete' cannot "
+                     f"run: {install}; `pipeline run all` goes on without it"], err
+    assert not (runs / f"rmap_{SCENE}").exists()
+    # `run complete` names it the same way
+    assert main("run", "complete") == 2
+    assert f"stage 'complete' cannot run: {install}" in capsys.readouterr().err
+    # run all: the workflow goes on without it, says so in the table and on stderr, exit 0
+    assert main("run", "all") == 0
+    err = capsys.readouterr().err
+    rows = {ln.split("│")[1].strip(): ln for ln in err.splitlines() if ln.count("│") > 3}
+    assert "skipped" in rows["complete"] and install in rows["complete"]
+    assert "ran" in rows["evaluate"] and "without 'complete' (not installed)" in rows["evaluate"]
+    assert f"warning: 'evaluate' of rmap_{SCENE} went without 'complete', which cannot run: {install}" in err
+    assert (runs / f"rmap_{SCENE}" / "evaluate" / "metrics.parquet").is_file()
+    assert not (runs / f"rmap_{SCENE}" / "complete").exists()
 
 
 # -- the DAG on a real scene ----------------------------------------------------------------------------------

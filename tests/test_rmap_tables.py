@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from schemas import write_artifact
+from sources.mapset import rebuilt_scenes
 from stages.evaluate import map_metrics as mm
 from stages.evaluate import rmap_paper as paper
 from stages.evaluate import rmap_tables as rt
@@ -17,7 +18,6 @@ from stages.evaluate.rmap_results import (
     collect_scene_results,
     load_scene_maps,
     plot_run_top_views,
-    rebuilt_scenes,
     score_maps,
 )
 

@@ -150,6 +150,7 @@ def test_unavailable_stage_is_skipped_in_all_and_refused_by_name(tmp_path: Path)
     runner = Runner(SEQ, tmp_path, reg, toy_stages.workflow())
     out = runner.run(["all"])
     assert actions(out) == {"square": "skipped", "make_numbers": "ran"}
-    assert "needs a_module_that_does_not_exist_xyz (pip install 'radar-pipeline[learn]')" in out[0].reason
+    assert "needs a_module_that_does_not_exist_xyz, not installed (the 'learn' extra: pip install -e '.[learn]', " \
+           "or make demo)" in out[0].reason
     with pytest.raises(UserError, match="stage 'square' cannot run: needs"):
         Runner(SEQ, tmp_path, reg, toy_stages.workflow()).run(["square"])

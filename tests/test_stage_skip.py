@@ -162,3 +162,69 @@ def test_radar_imu_only_log_runs_all_to_exit_0(tmp_path: Path) -> None:
     assert all("needs 'voxel', skipped: the log has no ground truth" in lines[s] for s in ("patches", "complete"))
     done = {p.name for p in (tmp_path / "runs" / "radar_imu").iterdir() if not p.name.startswith(".")}
     assert {"ingest", "filter", "odometry", "slam", "plan"} <= done and not done & set(lines)
+
+
+class NeedsExtra(Build):
+    """``build`` as a stage whose extra is not installed (as ``complete`` without torch)."""
+
+    requires = ("a_module_that_does_not_exist_xyz",)
+    requires_extra = "learn"
+
+
+def extra_runner(tmp: Path, seq: SequenceInfo, console: Any = None) -> Runner:
+    reg = {s.name: s for s in (Read(), NeedsExtra(), After(), Report())}
+    return Runner(seq, tmp, reg, Workflow("toy", list(reg), {}), {}, console)
+
+
+def test_named_stage_needing_an_uninstalled_optional_input_is_refused(tmp_path: Path) -> None:
+    """`run report` would leave out `build` (its extra is missing) and say nothing: a user error instead,
+    naming the stage, the reason and the install command, before anything runs."""
+    with pytest.raises(UserError) as info:
+        extra_runner(tmp_path, LOG).run(["report"])
+    msg = str(info.value)
+    assert msg == ("stage 'report' needs 'build' for sequence 'toy_log', and 'build' cannot run: needs "
+                   "a_module_that_does_not_exist_xyz, not installed (the 'learn' extra: pip install -e '.[learn]', "
+                   "or make demo); `pipeline run all` goes on without it")
+    assert not (tmp_path / "toy_log").exists()  # nothing ran, nothing written
+    # where the stage would not run for the sequence anyway, the missing extra does not matter
+    out = result(extra_runner(tmp_path, MAPS).run(["report"]))
+    assert out == {"report": ("ran", "missing")}
+
+
+def test_run_all_goes_without_an_uninstalled_stage_and_says_so(tmp_path: Path) -> None:
+    import io
+
+    from rich.console import Console
+
+    buf = io.StringIO()
+    out = result(extra_runner(tmp_path, LOG, Console(file=buf, width=300)).run(["all"]))
+    assert out["build"] == ("skipped", "needs a_module_that_does_not_exist_xyz, not installed (the 'learn' extra: "
+                                       "pip install -e '.[learn]', or make demo)")
+    assert out["after"] == ("skipped", "input 'build' unavailable")
+    assert out["read"][0] == "ran" and out["report"] == ("ran", "missing; without 'build' (not installed)")
+    text = buf.getvalue()
+    assert "warning: 'report' of toy_log went without 'build', which cannot run: needs " \
+           "a_module_that_does_not_exist_xyz, not installed (the 'learn' extra: pip install -e '.[learn]'" in text
+    # cached on the next run: still said
+    buf = io.StringIO()
+    out = result(extra_runner(tmp_path, LOG, Console(file=buf, width=300)).run(["all"]))
+    assert out["report"] == ("cached", "without 'build' (not installed)") and "went without 'build'" in buf.getvalue()
+
+
+def test_several_sequences_warn_once_per_uninstalled_stage(tmp_path: Path) -> None:
+    """With several sequences the workers' consoles are quiet: the driver names the uninstalled stage once."""
+    from pipeline.cli import not_installed_warnings
+    from pipeline.executors import TaskResult
+
+    reg = {s.name: s for s in (Read(), NeedsExtra(), After(), Report())}
+    results = []
+    for i in range(5):
+        seq = SequenceInfo(name=f"toy_log{i}", kind="source", source=Path("/nonexistent"))
+        wf = Workflow("toy", list(reg), {})
+        outcomes = Runner(seq, tmp_path, reg, wf, {}, None).run(["all"])
+        results.append(TaskResult(seq.name, seq.name, str(tmp_path), True, outcomes))
+    (line,) = not_installed_warnings(results, reg)
+    assert line == ("'build' did not run for 5 sequence(s) (toy_log0, toy_log1, toy_log2 and 2 more), and the stages "
+                    "that use it went without it: needs a_module_that_does_not_exist_xyz, not installed (the 'learn' "
+                    "extra: pip install -e '.[learn]', or make demo)")
+    assert not_installed_warnings(results, {s.name: s for s in (Read(), Build(), After(), Report())}) == []

@@ -2,54 +2,22 @@
 
 A map set is a folder laid out like ``shared/data/coloradar_maps``: ``<root>/<scene>/radar.parquet`` and
 ``<root>/<scene>/lidar_filtered.parquet`` (columns x, y, z, float64) and ``<root>/index.json`` giving each
-scene's ``split`` (``test`` = RMap Table III, ``train`` = the rest) and ``environment``. Ground truth is
+scene's ``split`` (``test`` = RMap Table III, ``train`` = the rest) and ``environment``, read by
+:func:`sources.mapset.read_index` (the one reader of ``index.json``). Ground truth is
 ``lidar_filtered`` (the shared README: it reproduces the paper's tables). :func:`read_scene` is the one
 place that reads a scene, so that it can be swapped for the project's map-sequence source layer.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.errors import UserError
+from sources.mapset import SceneInfo
 from stages.complete.data import F64, Patch
 from stages.patches.fps_patches import make_patches
-
-
-@dataclass(frozen=True)
-class SceneInfo:
-    name: str
-    environment: str
-    split: str
-    #: how the ground-truth map was made ("map" or the stand-in rebuilt from published patches)
-    gt_source: str
-
-
-def read_index(root: str | Path) -> dict[str, SceneInfo]:
-    """The scenes of a map set whose files are present, by name (sorted)."""
-    root = Path(root)
-    index = root / "index.json"
-    if not root.is_dir():
-        raise UserError(f"--maps {root}: not a folder; point it at a map set such as ../shared/data/coloradar_maps")
-    if not index.is_file():
-        raise UserError(f"--maps {root}: no index.json (scene -> split and environment); is this a map set?")
-    try:
-        raw = json.loads(index.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise UserError(f"{index}: unreadable index ({exc}); restore it from the map set") from exc
-    out: dict[str, SceneInfo] = {}
-    for name, v in sorted(raw.items()):
-        if not isinstance(v, dict) or "split" not in v or "environment" not in v:
-            raise UserError(f"{index}: scene {name!r} has no split or environment")
-        if (root / name / "radar.parquet").is_file() and (root / name / "lidar_filtered.parquet").is_file():
-            out[name] = SceneInfo(name, str(v["environment"]), str(v["split"]),
-                                  str(v.get("lidar_filtered", {}).get("source", "map")))
-    if not out:
-        raise UserError(f"--maps {root}: no scene with radar.parquet and lidar_filtered.parquet")
-    return out
 
 
 def validation_scenes(scenes: dict[str, SceneInfo]) -> list[str]:

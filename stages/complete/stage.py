@@ -1,7 +1,9 @@
 """`complete` stage: point-cloud completion of the radar map (RMap Sec. III-D, IV-B).
 
 Runs a trained checkpoint over every radar patch of the sequence, puts the predicted patches back in world
-coordinates, merges them and downsamples to the voxel resolution (mean per voxel). torch is imported
+coordinates, merges them and assembles the map at the voxel resolution: ``assembly = average`` (the
+paper's Sec. V, the mean of the points in each voxel; the default) or ``snap`` (the voxel centres, on the
+lattice of the radar and lidar maps). torch is imported
 only inside :meth:`CompleteStage.run`, so the pipeline imports without the ``learn`` extra.
 """
 
@@ -18,7 +20,7 @@ from pydantic import Field
 
 from pipeline.paths import PROJECT_ROOT
 from pipeline.stage import Stage, StageContext, StageParams
-from stages.complete.data import read_patches, voxel_downsample
+from stages.complete.data import Assembly, assemble_map, read_patches
 
 if TYPE_CHECKING:
     from pipeline.sequences import SequenceInfo
@@ -49,6 +51,9 @@ class CompleteParams(StageParams):
     resolution: float | None = Field(None, gt=0, description="downsampling voxel size (m); None = the voxel "
                                      "stage's resolution (RMap: the map resolution, 0.15 m)")
     threads: int | None = Field(None, ge=1, description="torch CPU threads (None = torch's default)")
+    assembly: Assembly = Field("average", description="how the merged predicted patches become the map, one "
+                               "point per occupied voxel: average = the mean of its points (RMap Sec. V); snap = "
+                               "its centre (k + 1/2) * resolution, on the lattice of the voxel maps")
 
 
 def resolve_checkpoint(path: str, kind: str = "simulated") -> Path:
@@ -125,7 +130,7 @@ class CompleteStage(Stage):
             result = complete_patches(model, meta, patches, device, p.batch_size, p.seed, advance)
         wall = time.perf_counter() - t0
         merged = np.concatenate(result.points) if result.points else np.zeros((0, 3))
-        down, counts = voxel_downsample(merged, res)
+        down, counts = assemble_map(merged, res, p.assembly)
         if not patches:
             ctx.warn("the patches artifact holds no radar patches; the completed map is empty")
         write_artifact({"x": down[:, 0], "y": down[:, 1], "z": down[:, 2], "count": counts.astype(np.int32)},
@@ -136,6 +141,7 @@ class CompleteStage(Stage):
             "n_points_predicted": len(merged),
             "n_points": len(down),
             "resolution": res,
+            "assembly": p.assembly,
             "device": str(device),
             "checkpoint": str(ckpt.relative_to(PROJECT_ROOT) if ckpt.is_relative_to(PROJECT_ROOT) else ckpt),
             "model_size": meta.train.get("config", {}).get("size", ""),

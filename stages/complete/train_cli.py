@@ -116,7 +116,8 @@ def collect(req: TrainRequest, seqs: list[SequenceInfo], overrides: Overrides, c
 def _check_env(req: TrainRequest) -> None:
     for mod in ("torch", "safetensors"):
         if importlib.util.find_spec(mod) is None:
-            raise UserError(f"`pipeline train` needs {mod}: pip install 'radar-pipeline[learn]'")
+            raise UserError(f"`pipeline train` needs {mod}, not installed (the 'learn' extra: pip install -e "
+                            "'.[learn]', or make demo)")
     if req.out.suffix not in (".safetensors", ".pt"):
         raise UserError(f"--out {req.out}: the checkpoint must end in .safetensors or .pt")
 
@@ -124,7 +125,8 @@ def _check_env(req: TrainRequest) -> None:
 def collect_maps(req: TrainRequest, console: Console) -> tuple[list[Patch], dict[str, Any], dict[str, Any]]:
     """Training patches (a_train) of the map set's train scenes, the validation scenes (patches at a_val and
     their ground truth) and the split record. Test scenes are not read."""
-    from stages.complete.maps import map_split, read_index, read_scene, scene_patches
+    from sources.mapset import read_index
+    from stages.complete.maps import map_split, read_scene, scene_patches
 
     assert req.maps is not None
     scenes = read_index(req.maps)

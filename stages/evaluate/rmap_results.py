@@ -28,19 +28,6 @@ MAP_METHODS = (INPUT, COMPLETED, LIDAR)
 REBUILT_METRIC = "gt_rebuilt"
 
 
-def rebuilt_scenes(index: Mapping[str, Any]) -> set[str]:
-    """Scenes of a map set's ``index.json`` whose ``lidar_filtered`` was rebuilt (``source`` other than 'map')."""
-    return {s for s, v in index.items() if str(v.get("lidar_filtered", {}).get("source", "map")) != "map"}
-
-
-def read_index(path: Path) -> dict[str, Any]:
-    """A map set's ``index.json`` (scene -> split, environment, sources)."""
-    try:
-        return dict(json.loads(Path(path).read_text()))
-    except (OSError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: cannot read the map set's index ({exc}); point at the folder's index.json") from exc
-
-
 def _manifest(path: Path) -> dict[str, Any]:
     if not path.is_file():
         return {}
@@ -107,8 +94,8 @@ def collect_scene_results(runs_dir: Path, seqs: Iterable[str] | None = None, reb
     """:class:`SceneResult` of every sequence in ``seqs`` (default: every ``rmap_*`` folder of ``runs_dir``).
 
     ``rebuilt``: scene names (``arpg_lab_run0``) or sequence names whose ground truth was rebuilt
-    (:func:`rebuilt_scenes` of the map set's index). Sequences without evaluate metrics are skipped with a
-    warning.
+    (:func:`sources.mapset.rebuilt_scenes` of the map set's index). Sequences without evaluate metrics are
+    skipped with a warning.
     """
     runs_dir = Path(runs_dir)
     if seqs is None:
