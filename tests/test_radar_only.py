@@ -79,6 +79,10 @@ def test_radar_only_rows_pair_each_map_with_the_trajectory_it_was_built_along() 
     assert title.startswith("Radar-only maps") and len(body) == 3 and body[1][-1] == "2.50"
     assert headers[1] == "built along" and body[2][1] == "rich_slam"
     assert radar_only_table([{"seq": "s", "method": "x", "metric": "auc", "value": 1.0, "params": "{}"}]) is None
+    # a sequence without lidar (trajectory metrics only): a stated skip, not a row of dashes
+    no_lidar = [{**r, "seq": "radar_imu"} for r in _records() if not r["method"].endswith("_map")]
+    title, _, body = radar_only_table(_records() + no_lidar)  # type: ignore[misc]
+    assert len(body) == 3 and title.endswith("skipped, no lidar map to score against: radar_imu")
 
 
 def test_map_vs_trajectory_figure(tmp_path: Path) -> None:

@@ -65,8 +65,10 @@ def radar_only_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]
 
 def radar_only_table(records: Sequence[Mapping[str, Any]]) -> tuple[str, list[str], list[list[str]]] | None:
     """The radar-only map table (title, headers, rows), or None when the records hold no such sweep."""
-    rows = radar_only_rows(records)
-    if not rows:
+    every = radar_only_rows(records)
+    rows = [r for r in every if any(k.startswith(MAPS) for k in r)]
+    skipped = list(dict.fromkeys(r["seq"] for r in every if r["seq"] not in {x["seq"] for x in rows}))
+    if not every:
         return None
     headers = ["sequence", "built along", "ATE pos / yaw, no alignment (m / deg)",
                "ATE pos / yaw, Table III (m / deg)",
@@ -85,6 +87,8 @@ def radar_only_table(records: Sequence[Mapping[str, Any]]) -> tuple[str, list[st
              fmt(r.get("ratio_cd_l2"), 2)] for r in rows]
     title = ("Radar-only maps: radar and completed maps built along each trajectory, against the lidar map built "
              "along ground truth (CD-l2 in m², the rest in m)")
+    if skipped:
+        title += f"; skipped, no lidar map to score against: {', '.join(skipped)}"
     return title, headers, body
 
 
