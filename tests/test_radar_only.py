@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -90,3 +91,25 @@ def test_map_vs_trajectory_figure(tmp_path: Path) -> None:
 
     path = plot_map_vs_trajectory(tmp_path / "f.png", _records())
     assert path.stat().st_size > 5000
+
+
+def test_radar_only_workflow_on_a_radar_imu_log_completes_the_map_and_says_what_it_cannot_score(
+        tmp_path: Path) -> None:
+    """No lidar and no ground truth: the map is built along the SLAM trajectory and completed from radar
+    patches alone; evaluate is skipped with its reason; exit 0."""
+    pytest.importorskip("torch")
+    import simulator
+
+    bag = simulator.simulate_to(world="handheld_loop", out=tmp_path / "walk.bag", duration=15.0, seed=5, fmt="bag")
+    r = cli("run", "all", "--source", str(bag), "--seq", "walk", "--dataset", "generic", "--runs-dir",
+            str(tmp_path / "runs"), "--workflow", "radar_only", "--set", "slam.n_particles=5",
+            "--set", "slam.n_basis=64", "--set", 'slam.methods=["odometry","rich_slam"]')
+    assert r.returncode == 0, r.stderr
+    seq = tmp_path / "runs" / "walk"
+    assert "radar patches only" in r.stderr
+    patches = read_artifact(seq / "patches" / "patches.parquet", "patches")
+    assert set(patches.column("kind").to_pylist()) == {"radar"}
+    done = read_artifact(seq / "complete" / "completed_map.parquet", "completed_map")
+    assert done.num_rows > 0
+    assert not (seq / "evaluate").exists()
+    assert re.search(r"evaluate\s+skipped: the log has no ground-truth poses", r.stderr)

@@ -136,7 +136,7 @@ class EvaluateStage(Stage):
             n = parquet_rows(input_dirs["ingest"] / "groundtruth.parquet")
             if n is not None and n < 2:
                 return (f"the log has {'no' if n == 0 else 'one'} ground-truth pose{'s' if n == 0 else ''}; "
-                        f"{', '.join(sorted(set(params.sections) & GT_SECTIONS))} need ground truth")
+                        f"evaluate.sections {', '.join(sorted(set(params.sections) & GT_SECTIONS))} need it")
         return None
 
     def report(self) -> StageReport:

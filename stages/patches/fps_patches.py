@@ -113,12 +113,15 @@ def make_patches(
     inliers = statistical_outliers(radar_all, outlier_neighbors, outlier_std_ratio)
     rad = radar_all[inliers]
     t = n_seeds(len(rad), n_radar, a)
-    if t == 0 or len(lid) == 0:
-        raise ValueError(f"cannot build patches: {len(rad)} radar and {len(lid)} lidar map points")
+    if t == 0:
+        raise ValueError(f"cannot build patches: {len(rad)} radar map points")
     seed_idx = farthest_point_sampling(rad, t, int(rng.integers(len(rad))))
     seeds = rad[seed_idx]
     r_idx, r_pad = knn_padded(cKDTree(rad), len(rad), seeds, n_radar, rng)
-    l_idx, l_pad = knn_padded(cKDTree(lid), len(lid), seeds, n_lidar, rng)
+    if len(lid):
+        l_idx, l_pad = knn_padded(cKDTree(lid), len(lid), seeds, n_lidar, rng)
+    else:  # a radar + IMU log: radar patches to complete, no lidar patches to train or score on
+        l_idx, l_pad = np.zeros((t, 0), np.int64), np.zeros((t, 0), bool)
     if norm_scale > 0:
         scale = np.full(len(seeds), float(norm_scale))
     else:

@@ -11,21 +11,15 @@ per patch point with ``patch`` (int32), ``kind`` ('radar' / 'lidar'), world ``x,
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
-from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pyarrow as pa
 from pydantic import Field
 
 from pipeline.errors import UserError
-from pipeline.stage import Stage, StageContext, StageParams, parquet_rows
+from pipeline.stage import Stage, StageContext, StageParams
 from schemas.io import read_artifact, write_artifact
 from stages.patches.fps_patches import Patches, make_patches
-
-if TYPE_CHECKING:
-    from pipeline.sequences import SequenceInfo
 
 
 class PatchesParams(StageParams):
@@ -52,12 +46,6 @@ class PatchesStage(Stage):
     version = "2"  # 2: t = floor(a * n_R / N_R) seeds (was ceil)
     outputs = ("patches.parquet", "patches.json")
 
-    def skip_reason_for_inputs(self, seq: SequenceInfo, params: StageParams,
-                               input_dirs: Mapping[str, Path]) -> str | None:
-        if "voxel" in input_dirs and parquet_rows(input_dirs["voxel"] / "lidar_map.parquet") == 0:
-            return "the lidar map is empty (no lidar or no ground truth in the log): no patch pairs"
-        return None
-
     def run(self, ctx: StageContext) -> None:
         p: PatchesParams = ctx.params
         maps = {}
@@ -65,7 +53,10 @@ class PatchesStage(Stage):
             path = ctx.input("voxel", f"{kind}_map.parquet")
             tab = read_artifact(path, f"{kind}_map", columns=["x", "y", "z"])
             maps[kind] = np.stack([tab.column(c).to_numpy() for c in ("x", "y", "z")], axis=1).astype(np.float64)
-            if len(maps[kind]) == 0:
+            if len(maps[kind]) == 0 and kind == "lidar":
+                ctx.warn("the lidar map is empty (no lidar or no ground truth in the log): radar patches only, "
+                         "to complete; nothing to train or score them against")
+            elif len(maps[kind]) == 0:
                 raise UserError(f"{path}: the {kind} map is empty, no patches can be made; check the voxel stage's "
                                 "inputs (`pipeline status`)")
         res = make_patches(maps["radar"], maps["lidar"], a=p.a, n_radar=p.n_radar, n_lidar=p.n_lidar,
