@@ -37,7 +37,7 @@ SHARED_MAPS = ROOT.parent / "shared" / "data" / "coloradar_maps"
 #: seconds of the demo world the run test simulates (the registry's demo is 60 s: minutes of slam on 2 cores)
 DEMO_S = 6.0
 #: workflow files a README command names that another change of the same issue adds: skipped until present
-PENDING = {"radar_only": "issue 29 items 1-3 add workflows/radar_only.toml"}
+PENDING: dict[str, str] = {}  # workflows a README command names before they land: {name: why}
 #: subcommands whose runnable forms need nothing but the project itself
 LOCAL_SUBCOMMANDS = {"sequences", "params", "profile"}
 
