@@ -196,7 +196,7 @@ def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float
         feats = voxel_features(near, trajectory, lo_in, (pshape[0], pshape[1], pshape[2]), res)
         out.feature_seconds += time.perf_counter() - t0
         t1 = time.perf_counter()
-        x = torch.from_numpy(feats)[None].to(device)
+        x = torch.from_numpy(feats)[None].to(device).contiguous(memory_format=torch.channels_last_3d)
         logit = model(x)[0, halo:halo + cshape[0], halo:halo + cshape[1], :nz]
         prob = torch.sigmoid(logit).float().cpu().numpy()
         out.model_seconds += time.perf_counter() - t1
@@ -220,3 +220,14 @@ def dense_prediction(pred: TilePrediction, lo: Sequence[int], shape: Sequence[in
     ok = np.all((k >= 0) & (k < np.asarray(shape)), axis=1)
     grid[k[ok, 0], k[ok, 1], k[ok, 2]] = pred.probs[ok]
     return grid
+
+
+def completed_keys(pred: TilePrediction, threshold: float, radar_keys: I64 | None = None) -> I64:
+    """The completed map's voxel keys: band voxels with probability >= ``threshold``, plus ``radar_keys``
+    (the pre-filtered radar map) when given (the union), unique and sorted."""
+    keys = pred.keys[pred.probs >= threshold]
+    if radar_keys is not None and len(radar_keys):
+        keys = np.concatenate([keys, np.asarray(radar_keys, np.int64)])
+    if len(keys) == 0:
+        return np.zeros((0, 3), np.int64)
+    return np.unique(keys, axis=0)
