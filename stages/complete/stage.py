@@ -59,8 +59,9 @@ class CompleteParams(StageParams):
     band_radius: float = Field(7.0, gt=0, description="pre-filter: horizontal distance to the trajectory (m)")
     band_z_below: float = Field(-3.0, description="pre-filter: lowest height over the trajectory (m)")
     band_z_above: float = Field(4.5, description="pre-filter: highest height over the trajectory (m)")
-    tile: int = Field(192, ge=8, description="voxel model: xy tile core (voxels, a multiple of 8); the halo is "
-                      "the receptive radius, so the output does not depend on it")
+    tile: int | None = Field(None, ge=8, description="voxel model: xy tile core (voxels, a multiple of 8); None = "
+                             "one pass over the whole map up to 24 M voxels, else 256; the halo is the receptive "
+                             "radius, so the output does not depend on it")
     checkpoint: str = Field("auto", description="trained network (.safetensors or .pt); relative paths are "
                             "looked up from the working directory, then the project root; auto = "
                             f"{DEFAULT_CHECKPOINT} for simulated sequences, {REAL_CHECKPOINT} for real data "
@@ -216,14 +217,21 @@ class CompleteStage(Stage):
         from schemas import write_artifact
         from stages.complete.voxel_checkpoint import load_voxel_checkpoint
         from stages.complete.voxel_grid import LatticeError, key_centres, lattice_keys
-        from stages.complete.voxel_net import completed_keys, map_domain, n_parameters, predict_tiles, tile_origins
+        from stages.complete.voxel_net import (
+            auto_core,
+            completed_keys,
+            map_domain,
+            n_parameters,
+            predict_tiles,
+            tile_origins,
+        )
 
         model, meta = load_voxel_checkpoint(ckpt, str(device))
         res = self.resolution(ctx)
         if abs(res - meta.resolution) > 1e-9:
             raise UserError(f"{ckpt}: trained for {meta.resolution:g} m voxels, the map is at {res:g} m; train a "
                             "voxel model at this resolution or set voxel.resolution")
-        if p.tile % model.stride():
+        if p.tile is not None and p.tile % model.stride():
             raise UserError(f"complete.tile = {p.tile}: must be a multiple of {model.stride()}")
         radar_path = ctx.input("voxel", "radar_map.parquet")
         radar = self._cloud(radar_path, "radar_map")
@@ -246,9 +254,10 @@ class CompleteStage(Stage):
                 raise UserError(f"{radar_path}: no radar voxel within the pre-filter band of the trajectory "
                                 f"({self.band(p)}); widen complete.band_* or set complete.prefilter = none")
         t0 = time.perf_counter()
-        with ctx.progress(len(tile_origins(map_domain(traj, res, meta.band, model.stride()), p.tile)),
-                          "completing voxel tiles") as advance:
-            pred = predict_tiles(model, keys, traj, res, meta.band, core=p.tile, device=device, advance=advance)
+        dom = map_domain(traj, res, meta.band, model.stride())
+        core = p.tile if p.tile is not None else auto_core(dom)
+        with ctx.progress(len(tile_origins(dom, core)), "completing voxel tiles") as advance:
+            pred = predict_tiles(model, keys, traj, res, meta.band, core=core, device=device, advance=advance)
         wall = time.perf_counter() - t0
         out = key_centres(completed_keys(pred, meta.threshold, keys if meta.union_radar else None), res)
         write_artifact({"x": out[:, 0], "y": out[:, 1], "z": out[:, 2], "count": np.ones(len(out), np.int32)},

@@ -3,8 +3,8 @@ torch ``conv3d`` that maps the radar map's lattice to a per-voxel occupancy logi
 
 No normalisation layer (no BatchNorm / GroupNorm), so a voxel's output depends only on the inputs within
 :meth:`VoxelUNet.receptive_radius` of it and never on the tile it was computed in; :func:`predict_tiles` runs
-a whole map as xy tiles with that radius as halo, on tiles whose origins are multiples of
-:meth:`VoxelUNet.stride` in lattice keys, which equals one pass over the whole map (``tests/test_voxel_net.py``).
+a whole map in one pass, or as xy tiles with that radius as halo whose origins are multiples of
+:meth:`VoxelUNet.stride` in lattice keys, which equals the one pass (``tests/test_voxel_net.py``).
 The channels are :data:`stages.complete.voxel_grid.CHANNELS` (radar map and trajectory only).
 """
 
@@ -150,27 +150,39 @@ def tile_origins(domain: Domain, core: int) -> list[tuple[int, int]]:
     return [(x, y) for x in xs for y in ys]
 
 
+#: whole-map passes up to this many voxels (about 3-4 GB of activations at the default widths); tiles above
+MAX_PASS_VOXELS = 24_000_000
+
+
+def auto_core(domain: Domain, max_voxels: int = MAX_PASS_VOXELS, tile: int = 256) -> int:
+    """One pass over the whole domain when it has at most ``max_voxels`` voxels, else ``tile``-voxel cores."""
+    if int(np.prod(domain.shape)) <= max_voxels:
+        return max(domain.shape[0], domain.shape[1])
+    return tile
+
+
 @torch.no_grad()
 def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float, band: Band,
-                  core: int = 192, halo: int | None = None, device: str | torch.device = "cpu",
+                  core: int | None = None, halo: int | None = None, device: str | torch.device = "cpu",
                   advance: Callable[[int], None] | None = None, origins: Sequence[tuple[int, int]] | None = None,
                   ) -> TilePrediction:
-    """Occupancy probability of every band voxel of a map, tile by tile (xy tiles of ``core`` voxels plus
-    ``halo``; the whole z range of the domain in every tile).
+    """Occupancy probability of every band voxel of a map: one pass over the map's :class:`Domain` (zero
+    padding at its faces), computed as xy tiles of ``core`` voxels (None: :func:`auto_core`), each with
+    ``halo`` voxels of context cut at the domain's faces, and the whole z range of the domain.
 
-    ``halo`` defaults to the receptive radius rounded up to the stride: the result then equals one pass
-    over the whole domain (padded by the same halo). Tiles whose core holds no band voxel are skipped (their
-    voxels are outside the pre-filter band and never output), and so are tiles with no radar voxel in
-    core + halo (no input to complete: their probabilities are 0). ``origins`` restricts the run to some
-    tiles (tests).
+    ``halo`` defaults to the receptive radius rounded up to the stride, and tile origins are multiples of the
+    stride: the result then equals the single pass (``tests/test_voxel_net.py``). Tiles whose core holds no
+    band voxel are skipped (their voxels are outside the pre-filter band and never output), and so are tiles
+    with no radar voxel in core + halo (nothing to complete: no voxel output). ``origins`` restricts the run
+    to some tiles (tests).
     """
     s = model.stride()
-    if core % s:
-        raise ValueError(f"tile core {core} must be a multiple of the model stride {s}")
+    dom = map_domain(trajectory, res, band, s)
+    core = core if core is not None else auto_core(dom)
+    core = int(math.ceil(core / s) * s)
     halo = halo if halo is not None else int(math.ceil(model.receptive_radius() / s) * s)
     if halo % s:
         raise ValueError(f"tile halo {halo} must be a multiple of the model stride {s}")
-    dom = map_domain(trajectory, res, band, s)
     tiles = list(origins) if origins is not None else tile_origins(dom, core)
     keys_out: list[I64] = []
     probs_out: list[npt.NDArray[np.float32]] = []
@@ -178,29 +190,31 @@ def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float
     out = TilePrediction(np.zeros((0, 3), np.int64), np.zeros(0, np.float32))
     nz = dom.shape[2]
     z0 = dom.lo[2]
+    hi = (dom.lo[0] + dom.shape[0], dom.lo[1] + dom.shape[1])
     for ox, oy in tiles:
         out.n_tiles += 1
         t0 = time.perf_counter()
-        cshape = (min(core, dom.lo[0] + dom.shape[0] - ox), min(core, dom.lo[1] + dom.shape[1] - oy), nz)
+        cshape = (min(core, hi[0] - ox), min(core, hi[1] - oy), nz)
         inband = band_grid((ox, oy, z0), cshape, trajectory, res, band)
-        lo_in = np.array([ox - halo, oy - halo, z0])
-        ishape = (cshape[0] + 2 * halo, cshape[1] + 2 * halo, nz)
+        x0, y0 = max(ox - halo, dom.lo[0]), max(oy - halo, dom.lo[1])
+        x1, y1 = min(ox + cshape[0] + halo, hi[0]), min(oy + cshape[1] + halo, hi[1])
+        lo_in = np.array([x0, y0, z0])
+        ishape = (x1 - x0, y1 - y0, nz)
         near = rk[np.all((rk >= lo_in) & (rk < lo_in + np.asarray(ishape)), axis=1)] if len(rk) else rk
         if not inband.any() or len(near) == 0:
             out.n_skipped += 1
             if advance:
                 advance(1)
             continue
-        # pad the input box to multiples of the stride (the core may be cut at the domain's edge)
-        pshape = tuple(int(math.ceil(v / s) * s) for v in ishape)
-        feats = voxel_features(near, trajectory, lo_in, (pshape[0], pshape[1], pshape[2]), res)
+        feats = voxel_features(near, trajectory, lo_in, ishape, res)
         out.feature_seconds += time.perf_counter() - t0
         t1 = time.perf_counter()
         x = torch.from_numpy(feats)[None].to(device).contiguous(memory_format=torch.channels_last_3d)
-        logit = model(x)[0, halo:halo + cshape[0], halo:halo + cshape[1], :nz]
+        logit = model(x)[0, ox - x0:ox - x0 + cshape[0], oy - y0:oy - y0 + cshape[1], :]
         prob = torch.sigmoid(logit).float().cpu().numpy()
+        del x, logit
         out.model_seconds += time.perf_counter() - t1
-        out.n_voxels_run += int(np.prod(pshape))
+        out.n_voxels_run += int(np.prod(ishape))
         idx = np.argwhere(inband)
         keys_out.append(idx + np.array([ox, oy, z0]))
         probs_out.append(prob[inband])

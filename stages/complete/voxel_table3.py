@@ -47,8 +47,8 @@ def score(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     return {k: float(m[k]) for k in METRICS} | {"n_points": float(len(pred))}
 
 
-def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core: int = 192,
-              log: Any = print) -> dict[str, Any]:
+def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core: int | None = None,
+              log: Any = print, only: list[str] | None = None) -> dict[str, Any]:
     """Rows ``{row: {scene: metrics}}`` and timings for the scenes of ``split`` (test, val)."""
     from sources.mapset import read_map_set
     from stages.complete.maps import map_split, read_index
@@ -56,6 +56,8 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
 
     sp = map_split(read_index(root))
     scenes = sp.test if split == "test" else sp.val if split == "val" else sp.train
+    if only:
+        scenes = [s for s in scenes if s in only]
     model = meta = None
     if checkpoint is not None:
         from stages.complete.voxel_checkpoint import load_voxel_checkpoint
@@ -121,7 +123,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--checkpoint", type=Path, default=None)
     ap.add_argument("--no-model", action="store_true")
     ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--core", type=int, default=192, help="tile core (voxels)")
+    ap.add_argument("--core", type=int, default=None, help="tile core (voxels); default: one pass per map up to "
+                    "24 M voxels")
+    ap.add_argument("--scenes", default=None, help="comma-separated subset of the split's scenes")
     ap.add_argument("--out", type=Path, default=None, help="write <out>.json and <out>.md")
     args = ap.parse_args(argv)
     ref = None
@@ -132,7 +136,8 @@ def main(argv: list[str] | None = None) -> int:
             torch.set_num_threads(args.threads)
         ref = mm_gflops()
     ckpt = None if args.no_model else (args.checkpoint or Path("data/models/rmap_voxel.safetensors"))
-    table = run_table(args.maps, args.split, ckpt, Band(), args.core)
+    table = run_table(args.maps, args.split, ckpt, Band(), args.core,
+                      only=args.scenes.split(",") if args.scenes else None)
     if ref is not None:
         import torch
 
