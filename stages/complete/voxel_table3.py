@@ -96,6 +96,35 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
     return out
 
 
+#: the rule, fixed before training ended: unite the model's voxels with the pre-filtered radar map when, on
+#: the validation scenes, the union's mean CD-l2 is lower and its mean paper-exact F at most 0.01 lower
+UNION_RULE = ("union iff on the validation scenes mean CD-l2 (union) < mean CD-l2 (model alone) and mean "
+              "paper-exact F (union) >= mean F (model alone) - 0.01")
+
+
+def decide_union(table: dict[str, Any]) -> bool:
+    """:data:`UNION_RULE` on a validation table of :func:`run_table`."""
+    if table["split"] != "val":
+        raise ValueError("the union is decided on the validation scenes only")
+    alone, union = table["overall"]["voxel"], table["overall"]["voxel + prefiltered radar"]
+    return bool(union["cd_l2"] < alone["cd_l2"] and union["fscore_0.15"] >= alone["fscore_0.15"] - 0.01)
+
+
+def write_union(checkpoint: Path, table: dict[str, Any]) -> bool:
+    """Decide the union on ``table`` (validation) and store it, with the evidence, in the checkpoint."""
+    from stages.complete.voxel_checkpoint import load_voxel_checkpoint, save_voxel_checkpoint
+
+    union = decide_union(table)
+    model, meta = load_voxel_checkpoint(checkpoint)
+    meta.union_radar = union
+    meta.train["union_decision"] = {
+        "rule": UNION_RULE, "union": union, "val_scenes": table["scenes"],
+        "overall": {r: {k: round(v, 4) for k, v in table["overall"][r].items()}
+                    for r in ("voxel", "voxel + prefiltered radar")}}
+    save_voxel_checkpoint(checkpoint, model, meta, half=True)
+    return union
+
+
 def _mean(rows: dict[str, dict[str, float]]) -> dict[str, float]:
     keys = [k for k in next(iter(rows.values())) if all(k in r for r in rows.values())]
     return {k: float(np.mean([r[k] for r in rows.values()])) for k in keys}
@@ -127,6 +156,8 @@ def main(argv: list[str] | None = None) -> int:
                     "24 M voxels")
     ap.add_argument("--scenes", default=None, help="comma-separated subset of the split's scenes")
     ap.add_argument("--out", type=Path, default=None, help="write <out>.json and <out>.md")
+    ap.add_argument("--decide-union", action="store_true", help="--split val: apply UNION_RULE and store the "
+                    "decision in the checkpoint")
     args = ap.parse_args(argv)
     ref = None
     if not args.no_model:
@@ -146,6 +177,10 @@ def main(argv: list[str] | None = None) -> int:
         table["threads"] = torch.get_num_threads()
     md = to_markdown(table)
     print(md)
+    if args.decide_union and ckpt is not None:
+        if args.split != "val" or args.scenes:
+            raise SystemExit("error: --decide-union needs --split val over all validation scenes")
+        print(f"\nunion with the pre-filtered radar: {write_union(ckpt, table)} ({UNION_RULE})")
     if "inference_seconds" in table:
         print(f"\ninference {table['inference_seconds']:.1f} s for {len(table['scenes'])} scenes; torch.mm "
               f"{table['mm_gflops']:.1f} GFLOP/s before, {table['mm_gflops_after']:.1f} after "
