@@ -101,6 +101,54 @@ def _inference_results(quick: bool) -> list[Result]:
     return out
 
 
+def _voxel_results(quick: bool) -> list[Result]:
+    """The voxel model (issue 28): one tile's forward pass in Mvoxel/s and, in full mode with the shared map set
+    present, the whole-map inference of the 18 present Table III test scenes (target: < 56 s, the paper's GPU
+    time for 1262 patches), each as a ratio to a same-run ``torch.mm`` reference."""
+    import os
+
+    import torch
+
+    from stages.complete.stage import VOXEL_CHECKPOINT, resolve_checkpoint
+    from stages.complete.voxel_net import VoxelUNet, n_parameters
+
+    path = resolve_checkpoint(VOXEL_CHECKPOINT)
+    if path.exists():
+        from stages.complete.voxel_checkpoint import load_voxel_checkpoint
+
+        model, _ = load_voxel_checkpoint(path)
+        what = "shipped checkpoint"
+    else:
+        model, what = VoxelUNet().eval(), "random weights"
+        model = model.to(memory_format=torch.channels_last_3d)  # type: ignore[call-overload]  # as the loader does
+    a = torch.randn(2048, 2048, generator=torch.Generator().manual_seed(0))
+    torch.mm(a, a)
+    t_mm = best_time(partial(torch.mm, a, a), 5)
+    ref = f"torch.mm 2048x2048 float32 ({2 * 2048**3 / t_mm / 1e9:.1f} GFLOP/s)"
+    halo = model.receptive_radius() + (-model.receptive_radius()) % model.stride()
+    side = 128 + 2 * halo
+    x = torch.zeros(1, 5, side, side, 64).contiguous(memory_format=torch.channels_last_3d)
+    with torch.no_grad():
+        model(x)
+        t = best_time(partial(model, x), 1 if quick else 2)
+    mvox = side * side * 64 / t / 1e6
+    out = [Result(AREA, f"voxel model forward {side}x{side}x64 (CPU, {torch.get_num_threads()} threads)", mvox,
+                  "Mvoxel/s", ref, t / t_mm, note=f"{what}, {n_parameters(model) / 1e6:.2f} M parameters; ratio = "
+                  "seconds per tile / seconds per torch.mm")]
+    root = Path(os.environ.get("RMAP_ROOT", "../shared/data/coloradar_maps"))
+    if not quick and path.exists() and (root / "index.json").is_file():
+        from stages.complete.voxel_grid import Band
+        from stages.complete.voxel_table3 import run_table
+
+        table = run_table(root, "test", path, Band(), log=lambda *_: None)
+        secs = table["inference_seconds"]
+        out.append(Result(AREA, f"voxel model, {len(table['scenes'])} test scenes whole-map inference", secs, "s",
+                          ref, secs / t_mm, target="< 56 s (RMap: 1262 patches on an RTX 6000)",
+                          note=f"Overall CD-l2 {table['overall']['voxel']['cd_l2']:.3f}, F exact "
+                               f"{table['overall']['voxel']['fscore_0.15']:.3f}"))
+    return out
+
+
 def _run_complete_on_existing(store: Any, params: dict[str, Any], out_dir: Path) -> dict[str, Any]:
     """The `complete` stage on a run store's finished `patches` and `voxel` folders, without the runner."""
     from rich.console import Console
@@ -188,7 +236,7 @@ def run(quick: bool = False) -> list[Result]:
     import torch
 
     torch.manual_seed(0)
-    results = _ops_results(quick) + _inference_results(quick)
+    results = _ops_results(quick) + _inference_results(quick) + _voxel_results(quick)
     if not quick:
         results += _heldout_results()
     return results

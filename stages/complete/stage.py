@@ -1,10 +1,14 @@
 """`complete` stage: point-cloud completion of the radar map (RMap Sec. III-D, IV-B).
 
-Runs a trained checkpoint over every radar patch of the sequence, puts the predicted patches back in world
-coordinates, merges them and assembles the map at the voxel resolution: ``assembly = average`` (the
-paper's Sec. V, the mean of the points in each voxel; the default) or ``snap`` (the voxel centres, on the
-lattice of the radar and lidar maps). torch is imported
-only inside :meth:`CompleteStage.run`, so the pipeline imports without the ``learn`` extra.
+``model = uppointr`` (default): runs a trained UpPoinTr checkpoint over every radar patch of the sequence,
+puts the predicted patches back in world coordinates, merges them and assembles the map at the voxel
+resolution: ``assembly = average`` (the paper's Sec. V, the mean of the points in each voxel; the default) or
+``snap`` (the voxel centres, on the lattice of the radar and lidar maps). ``model = voxel`` (issue 28): the
+voxel U-Net (``voxel_net.py``) predicts the occupancy of every voxel of the radar map's lattice inside the
+trajectory band, thresholded at the checkpoint's validation threshold; it needs the recorded trajectory
+(``map_trajectory.parquet``, map sequences ``rmap_*``). ``prefilter = band`` keeps only radar voxels inside the
+trajectory band (RMap's future work); ``auto``: on for the voxel model (trained so), off for UpPoinTr. torch is
+imported only inside :meth:`CompleteStage.run`, so the pipeline imports without the ``learn`` extra.
 """
 
 from __future__ import annotations
@@ -12,15 +16,18 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from pydantic import Field
 
+from pipeline.errors import UserError
 from pipeline.paths import PROJECT_ROOT
 from pipeline.stage import Stage, StageContext, StageParams
-from stages.complete.data import Assembly, assemble_map, read_patches
+from stages.complete.data import F64, Assembly, assemble_map, read_patches
+from stages.complete.voxel_grid import Band, in_band, trajectory_band
 
 if TYPE_CHECKING:
     from pipeline.sequences import SequenceInfo
@@ -29,20 +36,37 @@ if TYPE_CHECKING:
 DEFAULT_CHECKPOINT = "data/models/rmap_small.safetensors"
 #: trained on the real ColoRadar maps (RMap's train scenes): the default for every other sequence kind
 REAL_CHECKPOINT = "data/models/rmap_coloradar_small.safetensors"
+#: the voxel model, trained on the real ColoRadar maps (RMap's train scenes): every sequence kind
+VOXEL_CHECKPOINT = "data/models/rmap_voxel.safetensors"
 
 
-def default_checkpoint(kind: str) -> str:
-    """The shipped checkpoint for a sequence kind: simulator-trained for simulated sequences, else real-trained."""
+def default_checkpoint(kind: str, model: str = "uppointr") -> str:
+    """The shipped checkpoint for a sequence kind and model: UpPoinTr simulator-trained for simulated
+    sequences, else real-trained; the voxel model's real-trained one for every kind."""
+    if model == "voxel":
+        return VOXEL_CHECKPOINT
     return DEFAULT_CHECKPOINT if kind == "simulated" else REAL_CHECKPOINT
 
 
 class CompleteParams(StageParams):
     """Parameters of the `complete` stage."""
 
+    model: Literal["uppointr", "voxel"] = Field("uppointr", description="uppointr = the paper's patch network; "
+                                                "voxel = the per-voxel 3D U-Net on the map's lattice (issue 28)")
+    prefilter: Literal["auto", "none", "band"] = Field("auto", description="radar pre-filter of the map input: "
+                                                       "band = keep radar voxels within band_radius and "
+                                                       "band_z_below..band_z_above of the recorded trajectory; "
+                                                       "auto = band for the voxel model, none for uppointr")
+    band_radius: float = Field(7.0, gt=0, description="pre-filter: horizontal distance to the trajectory (m)")
+    band_z_below: float = Field(-3.0, description="pre-filter: lowest height over the trajectory (m)")
+    band_z_above: float = Field(4.5, description="pre-filter: highest height over the trajectory (m)")
+    tile: int | None = Field(None, ge=8, description="voxel model: xy tile core (voxels, a multiple of 8); None = "
+                             "one pass over the whole map up to 24 M voxels, else 256; the halo is the receptive "
+                             "radius, so the output does not depend on it")
     checkpoint: str = Field("auto", description="trained network (.safetensors or .pt); relative paths are "
                             "looked up from the working directory, then the project root; auto = "
                             f"{DEFAULT_CHECKPOINT} for simulated sequences, {REAL_CHECKPOINT} for real data "
-                            "(ColoRadar logs, map sequences)")
+                            f"(ColoRadar logs, map sequences); with model = voxel {VOXEL_CHECKPOINT}")
     device: Literal["cpu", "cuda", "auto"] = Field("cpu", description="where the network runs; auto = cuda "
                                                    "when torch sees a GPU")
     batch_size: int = Field(8, ge=1, description="patches per forward pass")
@@ -56,10 +80,11 @@ class CompleteParams(StageParams):
                                "its centre (k + 1/2) * resolution, on the lattice of the voxel maps")
 
 
-def resolve_checkpoint(path: str, kind: str = "simulated") -> Path:
-    """A checkpoint path as given, else relative to the project root; ``auto`` by the sequence ``kind``."""
+def resolve_checkpoint(path: str, kind: str = "simulated", model: str = "uppointr") -> Path:
+    """A checkpoint path as given, else relative to the project root; ``auto`` by the sequence ``kind`` and
+    the ``model``."""
     if path == "auto":
-        path = default_checkpoint(kind)
+        path = default_checkpoint(kind, model)
     p = Path(path).expanduser()
     if p.is_absolute() or p.exists():
         return p
@@ -93,9 +118,13 @@ class CompleteStage(Stage):
     requires = ("torch", "safetensors")
     requires_extra = "learn"
 
+    def input_stages(self, params: StageParams) -> tuple[str, ...]:
+        assert isinstance(params, CompleteParams)
+        return ("voxel",) if params.model == "voxel" else self.inputs
+
     def key_material(self, seq: SequenceInfo, params: StageParams) -> dict[str, Any]:
         assert isinstance(params, CompleteParams)
-        path = resolve_checkpoint(params.checkpoint, seq.kind)
+        path = resolve_checkpoint(params.checkpoint, seq.kind, params.model)
         return {"checkpoint_sha256": file_sha256(path) if path.exists() else "missing"}
 
     def resolution(self, ctx: StageContext) -> float:
@@ -121,9 +150,22 @@ class CompleteStage(Stage):
         if p.threads is not None:
             torch.set_num_threads(p.threads)
         device = resolve_device(p.device)
-        ckpt = resolve_checkpoint(p.checkpoint, ctx.seq.kind)
+        ckpt = resolve_checkpoint(p.checkpoint, ctx.seq.kind, p.model)
+        if p.model == "voxel":
+            self._run_voxel(ctx, p, ckpt, device)
+            return
+        from stages.complete.voxel_checkpoint import checkpoint_kind
+
+        if ckpt.is_file() and checkpoint_kind(ckpt) != "uppointr":
+            raise UserError(f"{ckpt}: a {checkpoint_kind(ckpt)} checkpoint, not UpPoinTr; set complete.model = voxel "
+                            "or give an UpPoinTr checkpoint")
         model, meta = load_checkpoint(ckpt, device)
         patches = read_patches(ctx.input("patches", "patches.parquet"), ctx.seq.name)
+        if p.prefilter == "band":
+            traj = self._trajectory(ctx)
+            band = self.band(p)
+            patches = [q for q in (replace(q, radar=trajectory_band(q.radar, traj, band)) for q in patches)
+                       if len(q.radar)]
         res = self.resolution(ctx)
         t0 = time.perf_counter()
         with ctx.progress(len(patches), "completing patches") as advance:
@@ -148,6 +190,101 @@ class CompleteStage(Stage):
             "norm_scale_m": meta.norm_scale,
             "model_seconds": result.model_seconds,
             "seconds_per_patch": result.seconds_per_patch,
+            "wall_seconds": wall,
+            "model": "uppointr",
+            "prefilter": p.prefilter if p.prefilter != "auto" else "none",
+        })
+
+    @staticmethod
+    def band(p: CompleteParams) -> Band:
+        return Band(p.band_radius, p.band_z_below, p.band_z_above)
+
+    def _cloud(self, path: Path, schema: str) -> F64:
+        from schemas import read_artifact
+
+        t = read_artifact(path, schema, columns=["x", "y", "z"])
+        return np.stack([t.column(c).to_numpy().astype(np.float64) for c in "xyz"], axis=1)
+
+    def _trajectory(self, ctx: StageContext) -> F64:
+        path = ctx.input_dirs["voxel"] / "map_trajectory.parquet"
+        if not path.is_file():
+            raise UserError(f"complete: {ctx.seq.name} has no recorded trajectory ({path} is missing; the voxel "
+                            "model and the band pre-filter need map sequences rmap_*); set complete.model = uppointr "
+                            "and complete.prefilter = none")
+        traj = self._cloud(path, "map_trajectory")
+        if len(traj) == 0:
+            raise UserError(f"{path}: the recorded trajectory is empty")
+        return traj
+
+    def _run_voxel(self, ctx: StageContext, p: CompleteParams, ckpt: Path, device: Any) -> None:
+        """The voxel model over the whole map (tiled, equal to one pass), thresholded (RMap Sec. III-D's task
+        posed per voxel, issue 28)."""
+        from schemas import write_artifact
+        from stages.complete.voxel_checkpoint import load_voxel_checkpoint
+        from stages.complete.voxel_grid import LatticeError, key_centres, lattice_keys
+        from stages.complete.voxel_net import (
+            auto_core,
+            completed_keys,
+            map_domain,
+            n_parameters,
+            predict_tiles,
+            tile_origins,
+        )
+
+        model, meta = load_voxel_checkpoint(ckpt, str(device))
+        res = self.resolution(ctx)
+        if abs(res - meta.resolution) > 1e-9:
+            raise UserError(f"{ckpt}: trained for {meta.resolution:g} m voxels, the map is at {res:g} m; train a "
+                            "voxel model at this resolution or set voxel.resolution")
+        if p.tile is not None and p.tile % model.stride():
+            raise UserError(f"complete.tile = {p.tile}: must be a multiple of {model.stride()}")
+        radar_path = ctx.input("voxel", "radar_map.parquet")
+        radar = self._cloud(radar_path, "radar_map")
+        if len(radar) == 0:
+            raise UserError(f"{radar_path}: the radar map has no voxels; nothing to complete")
+        traj = self._trajectory(ctx)
+        try:
+            keys = lattice_keys(radar, res, "radar map")
+            lidar_path = ctx.input_dirs["voxel"] / "lidar_map.parquet"
+            if lidar_path.is_file():
+                lattice_keys(self._cloud(lidar_path, "lidar_map"), res, "lidar map")
+        except LatticeError as exc:
+            raise UserError(f"{ctx.input_dirs['voxel']}: {exc}; the radar and lidar maps must be voxel centres "
+                            "of one lattice") from exc
+        prefilter = p.prefilter in ("auto", "band")
+        if prefilter:
+            keep = in_band(radar, traj, self.band(p))
+            keys = keys[keep]
+            if len(keys) == 0:
+                raise UserError(f"{radar_path}: no radar voxel within the pre-filter band of the trajectory "
+                                f"({self.band(p)}); widen complete.band_* or set complete.prefilter = none")
+        t0 = time.perf_counter()
+        dom = map_domain(traj, res, meta.band, model.stride())
+        core = p.tile if p.tile is not None else auto_core(dom)
+        with ctx.progress(len(tile_origins(dom, core)), "completing voxel tiles") as advance:
+            pred = predict_tiles(model, keys, traj, res, meta.band, core=core, device=device, advance=advance)
+        wall = time.perf_counter() - t0
+        out = key_centres(completed_keys(pred, meta.threshold, keys if meta.union_radar else None), res)
+        write_artifact({"x": out[:, 0], "y": out[:, 1], "z": out[:, 2], "count": np.ones(len(out), np.int32)},
+                       ctx.output("completed_map.parquet"), "completed_map")
+        ctx.recording.static_points("world/complete", out, colors=height_colors(out[:, 2]), radii=res / 2)
+        ctx.stats.update({
+            "model": "voxel",
+            "prefilter": "band" if prefilter else "none",
+            "n_radar_voxels": len(keys),
+            "n_points": len(out),
+            "resolution": res,
+            "device": str(device),
+            "checkpoint": str(ckpt.relative_to(PROJECT_ROOT) if ckpt.is_relative_to(PROJECT_ROOT) else ckpt),
+            "model_size": f"voxel U-Net {n_parameters(model):,} parameters",
+            "n_parameters": n_parameters(model),
+            "threshold": meta.threshold,
+            "union_radar": meta.union_radar,
+            "n_tiles": pred.n_tiles,
+            "n_tiles_skipped": pred.n_skipped,
+            "n_voxels_run": pred.n_voxels_run,
+            "model_seconds": pred.model_seconds,
+            "feature_seconds": pred.feature_seconds,
             "wall_seconds": wall,
         })
 

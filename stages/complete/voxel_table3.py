@@ -1,0 +1,196 @@
+"""RMap Table III for the voxel model and the trajectory-band pre-filter on a published map set (issue 28):
+``python -m stages.complete.voxel_table3 --maps ../shared/data/coloradar_maps --split test``.
+
+Rows per scene and Overall (the mean of the per-scene rows): the input radar map, the pre-filtered input
+(:func:`stages.complete.voxel_grid.trajectory_band`), the voxel model alone, the voxel model united with the
+pre-filtered radar map, and (test split) the paper's RMap row (``stages.evaluate.rmap_paper``). Metrics:
+CD-l1, CD-l2, F@0.15 paper-exact and robust, with precision and recall (``stages.evaluate.map_metrics``).
+``--split val`` scores the validation scenes (the choices: union or not); ``--no-model`` only the inputs.
+Inference seconds (features + network) and a same-run ``torch.mm`` GFLOP/s reference are reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stages.complete.voxel_grid import Band, key_centres, lattice_keys, trajectory_band
+
+METRICS = ("cd_l1", "cd_l2", "fscore_0.15", "fscore_0.15_robust", "precision_0.15", "recall_0.15",
+           "precision_0.15_robust", "recall_0.15_robust")
+ROWS = ("input", "prefiltered input", "voxel", "voxel + prefiltered radar", "paper RMap")
+
+
+def mm_gflops(threads: int | None = None, n: int = 2048) -> float:
+    """float32 ``torch.mm`` rate (GFLOP/s, best of 5) on this machine now: the reference of the timings."""
+    import torch
+
+    a = torch.randn(n, n, generator=torch.Generator().manual_seed(0))
+    torch.mm(a, a)
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        torch.mm(a, a)
+        best = min(best, time.perf_counter() - t0)
+    return 2.0 * n**3 / best / 1e9
+
+
+def score(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
+    from stages.evaluate.map_metrics import map_metrics
+
+    m = map_metrics(pred, gt)
+    return {k: float(m[k]) for k in METRICS} | {"n_points": float(len(pred))}
+
+
+def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core: int | None = None,
+              log: Any = print, only: list[str] | None = None) -> dict[str, Any]:
+    """Rows ``{row: {scene: metrics}}`` and timings for the scenes of ``split`` (test, val)."""
+    from sources.mapset import read_index, read_map_set
+    from stages.complete.maps import map_split
+    from stages.evaluate.rmap_paper import TABLE_III
+
+    sp = map_split(read_index(root))
+    scenes = sp.test if split == "test" else sp.val if split == "val" else sp.train
+    if only:
+        scenes = [s for s in scenes if s in only]
+    model = meta = None
+    if checkpoint is not None:
+        from stages.complete.voxel_checkpoint import load_voxel_checkpoint
+
+        model, meta = load_voxel_checkpoint(checkpoint)
+    rows: dict[str, dict[str, dict[str, float]]] = {r: {} for r in ROWS}
+    seconds: dict[str, float] = {}
+    for s in scenes:
+        m = read_map_set(root, s)
+        gt = m.lidar_filtered
+        rows["input"][s] = score(m.radar, gt)
+        pre = trajectory_band(m.radar, m.trajectory, band)
+        rows["prefiltered input"][s] = score(pre, gt)
+        if s in TABLE_III and split == "test":
+            rows["paper RMap"][s] = TABLE_III[s].rmap.metrics()
+        if model is not None and meta is not None:
+            from stages.complete.voxel_net import completed_keys, predict_tiles
+
+            res = meta.resolution
+            rk = lattice_keys(trajectory_band(m.radar, m.trajectory, meta.band), res, f"{s} radar map")
+            t0 = time.perf_counter()
+            pred = predict_tiles(model, rk, m.trajectory, res, meta.band, core=core)
+            seconds[s] = time.perf_counter() - t0
+            alone = key_centres(completed_keys(pred, meta.threshold), res)
+            union = key_centres(completed_keys(pred, meta.threshold, rk), res)
+            rows["voxel"][s] = score(alone, gt) | {"seconds": seconds[s], "voxels_run": float(pred.n_voxels_run)}
+            rows["voxel + prefiltered radar"][s] = score(union, gt)
+        log(f"{s}: " + "  ".join(f"{r} {v[s]['cd_l2']:.3f}/{v[s]['fscore_0.15']:.3f}" for r, v in rows.items()
+                                 if s in v) + (f"  ({seconds[s]:.1f} s)" if s in seconds else ""))
+    out: dict[str, Any] = {"split": split, "scenes": scenes, "band": band.__dict__, "rows": rows,
+                           "overall": {r: _mean(v) for r, v in rows.items() if v}}
+    if seconds:
+        out["inference_seconds"] = float(sum(seconds.values()))
+        out["checkpoint"] = str(checkpoint)
+        out["threshold"] = meta.threshold if meta else None
+    return out
+
+
+#: the rule, fixed before training ended: unite the model's voxels with the pre-filtered radar map when, on
+#: the validation scenes, the union's mean CD-l2 is lower and its mean paper-exact F at most 0.01 lower
+UNION_RULE = ("union iff on the validation scenes mean CD-l2 (union) < mean CD-l2 (model alone) and mean "
+              "paper-exact F (union) >= mean F (model alone) - 0.01")
+
+
+def decide_union(table: dict[str, Any]) -> bool:
+    """:data:`UNION_RULE` on a validation table of :func:`run_table`."""
+    if table["split"] != "val":
+        raise ValueError("the union is decided on the validation scenes only")
+    alone, union = table["overall"]["voxel"], table["overall"]["voxel + prefiltered radar"]
+    return bool(union["cd_l2"] < alone["cd_l2"] and union["fscore_0.15"] >= alone["fscore_0.15"] - 0.01)
+
+
+def write_union(checkpoint: Path, table: dict[str, Any]) -> bool:
+    """Decide the union on ``table`` (validation) and store it, with the evidence, in the checkpoint."""
+    from stages.complete.voxel_checkpoint import load_voxel_checkpoint, save_voxel_checkpoint
+
+    union = decide_union(table)
+    model, meta = load_voxel_checkpoint(checkpoint)
+    meta.union_radar = union
+    meta.train["union_decision"] = {
+        "rule": UNION_RULE, "union": union, "val_scenes": table["scenes"],
+        "overall": {r: {k: round(v, 4) for k, v in table["overall"][r].items()}
+                    for r in ("voxel", "voxel + prefiltered radar")}}
+    save_voxel_checkpoint(checkpoint, model, meta, half=True)
+    return union
+
+
+def _mean(rows: dict[str, dict[str, float]]) -> dict[str, float]:
+    keys = [k for k in next(iter(rows.values())) if all(k in r for r in rows.values())]
+    return {k: float(np.mean([r[k] for r in rows.values()])) for k in keys}
+
+
+def to_markdown(table: dict[str, Any]) -> str:
+    """Per scene and Overall: CD-l1 / CD-l2 / F exact / F robust / P / R (exact) per row."""
+    cols = ("cd_l1", "cd_l2", "fscore_0.15", "fscore_0.15_robust", "precision_0.15", "recall_0.15")
+    head = "| scene | map | CD-l1 | CD-l2 | F@0.15 exact | F@0.15 robust | P exact | R exact |"
+    lines = [head, "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for s in [*table["scenes"], "Overall"]:
+        for r, v in table["rows"].items():
+            row = table["overall"].get(r) if s == "Overall" else v.get(s)
+            if not row:
+                continue
+            cells = [f"{row[c]:.3f}" if c in row else "" for c in cols]
+            lines.append(f"| {s} | {r} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m stages.complete.voxel_table3", description=__doc__.splitlines()[0])
+    ap.add_argument("--maps", type=Path, required=True)
+    ap.add_argument("--split", choices=("test", "val"), default="test")
+    ap.add_argument("--checkpoint", type=Path, default=None)
+    ap.add_argument("--no-model", action="store_true")
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--core", type=int, default=None, help="tile core (voxels); default: one pass per map up to "
+                    "24 M voxels")
+    ap.add_argument("--scenes", default=None, help="comma-separated subset of the split's scenes")
+    ap.add_argument("--out", type=Path, default=None, help="write <out>.json and <out>.md")
+    ap.add_argument("--decide-union", action="store_true", help="--split val: apply UNION_RULE and store the "
+                    "decision in the checkpoint")
+    args = ap.parse_args(argv)
+    ref = None
+    if not args.no_model:
+        import torch
+
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        ref = mm_gflops()
+    ckpt = None if args.no_model else (args.checkpoint or Path("data/models/rmap_voxel.safetensors"))
+    table = run_table(args.maps, args.split, ckpt, Band(), args.core,
+                      only=args.scenes.split(",") if args.scenes else None)
+    if ref is not None:
+        import torch
+
+        table["mm_gflops"] = ref
+        table["mm_gflops_after"] = mm_gflops()
+        table["threads"] = torch.get_num_threads()
+    md = to_markdown(table)
+    print(md)
+    if args.decide_union and ckpt is not None:
+        if args.split != "val" or args.scenes:
+            raise SystemExit("error: --decide-union needs --split val over all validation scenes")
+        print(f"\nunion with the pre-filtered radar: {write_union(ckpt, table)} ({UNION_RULE})")
+    if "inference_seconds" in table:
+        print(f"\ninference {table['inference_seconds']:.1f} s for {len(table['scenes'])} scenes; torch.mm "
+              f"{table['mm_gflops']:.1f} GFLOP/s before, {table['mm_gflops_after']:.1f} after "
+              f"({table['threads']} threads)")
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.with_suffix(".json").write_text(json.dumps(table, indent=1))
+        args.out.with_suffix(".md").write_text(md + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

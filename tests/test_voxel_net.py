@@ -1,0 +1,145 @@
+"""The voxel completion model (issue 28): lattice, features, receptive radius, tiled inference = one pass."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from pipeline.errors import UserError  # noqa: E402
+from stages.complete.voxel_grid import (  # noqa: E402
+    CHANNELS,
+    Band,
+    LatticeError,
+    box_sum,
+    in_band,
+    key_centres,
+    lattice_keys,
+    trajectory_band,
+    voxel_features,
+)
+from stages.complete.voxel_net import VoxelNetConfig, VoxelUNet, map_domain, predict_tiles  # noqa: E402
+
+RES = 0.15
+
+
+def _scene(seed: int = 0, n: int = 600) -> tuple[np.ndarray, np.ndarray]:
+    """Radar voxel keys scattered around an L-shaped path, and the path (m)."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 1, 60)
+    path = np.concatenate([np.stack([t * 6, np.zeros_like(t), np.full_like(t, 1.0)], 1),
+                           np.stack([np.full_like(t, 6.0), t * 5, np.full_like(t, 1.0)], 1)])
+    base = path[rng.integers(len(path), size=n)] + rng.normal(0, [1.5, 1.5, 0.8], (n, 3))
+    keys = np.unique(np.floor(base / RES).astype(np.int64), axis=0)
+    return keys, path
+
+
+def test_lattice_keys_round_trip_and_off_lattice_error() -> None:
+    keys = np.array([[0, -3, 7], [12, 5, -1]])
+    pts = key_centres(keys, RES)
+    assert np.array_equal(lattice_keys(pts, RES), keys)
+    with pytest.raises(LatticeError, match=r"not on the 0\.15 m voxel lattice"):
+        lattice_keys(pts + np.array([0.05, 0, 0]), RES, "radar map")
+
+
+def test_box_sum_matches_brute_force() -> None:
+    rng = np.random.default_rng(1)
+    occ = (rng.random((9, 10, 11)) < 0.3).astype(np.float32)
+    r = 2
+    got = box_sum(occ, r)
+    want = np.array([[[occ[i:i + 5, j:j + 5, k:k + 5].sum() for k in range(7)] for j in range(6)] for i in range(5)])
+    assert np.array_equal(got, want)
+
+
+def test_features_of_a_tile_equal_the_whole_box() -> None:
+    keys, path = _scene()
+    lo = keys.min(0) - 2
+    shape = tuple(int(v) for v in keys.max(0) - lo + 3)
+    whole = voxel_features(keys, path, lo, (shape[0], shape[1], shape[2]), RES)
+    assert whole.shape == (len(CHANNELS), *shape)
+    off = np.array([7, 5, 3])
+    sub_shape = (11, 13, 9)
+    sub = voxel_features(keys, path, lo + off, sub_shape, RES)
+    assert np.array_equal(sub, whole[:, 7:18, 5:18, 3:12])
+    assert whole[0].sum() == len(keys)
+
+
+def test_band_prefilter() -> None:
+    path = np.stack([np.linspace(0, 10, 101), np.zeros(101), np.ones(101)], 1)  # distances to the points
+    pts = np.array([[5.0, 6.9, 1.0], [5.0, 7.1, 1.0], [5.0, 0.0, -2.1], [5.0, 0.0, -2.0], [5.0, 0.0, 5.4]])
+    band = Band(radius=7.0, z_below=-3.0, z_above=4.5)
+    assert in_band(pts, path, band).tolist() == [True, False, False, True, True]
+    assert len(trajectory_band(pts, path, band)) == 3
+
+
+def test_receptive_radius_bounds_the_influence() -> None:
+    torch.manual_seed(0)
+    model = VoxelUNet(VoxelNetConfig(in_channels=1, widths=(2, 3, 4), bottom_convs=2, bottom_dilation=2)).eval()
+    r = model.receptive_radius()
+    n = 2 * r + 8
+    n += (-n) % model.stride()
+    x = torch.zeros(1, 1, n, 4, 4)
+    c = n // 2
+    with torch.no_grad():
+        base = model(x)[0, c]
+        far = x.clone()
+        far[0, 0, c + r + 1] = 5.0
+        far[0, 0, c - r - 1] = 5.0
+        near = x.clone()
+        near[0, 0, c + 3] = 5.0
+        assert torch.equal(model(far)[0, c], base)
+        assert not torch.equal(model(near)[0, c], base)
+
+
+@pytest.mark.parametrize("core", [8, 16])
+def test_tiled_inference_equals_one_pass(core: int) -> None:
+    torch.manual_seed(0)
+    model = VoxelUNet(VoxelNetConfig(widths=(3, 4, 5), bottom_convs=1, bottom_dilation=2)).eval()
+    with torch.no_grad():  # weights that keep the ReLUs alive, so that every layer shapes the output
+        for p in model.parameters():
+            if p.ndim > 1:
+                p.normal_(0.0, (2.0 / p[0].numel()) ** 0.5)
+            else:
+                p.uniform_(-0.1, 0.3)
+    keys, path = _scene()
+    band = Band(radius=2.0, z_below=-1.5, z_above=1.5)
+    dom = map_domain(path, RES, band, model.stride())
+    one = predict_tiles(model, keys, path, RES, band, core=max(dom.shape[:2]) + model.stride())
+    assert one.n_tiles - one.n_skipped == 1
+    assert one.probs.std() > 0.02
+    tiled = predict_tiles(model, keys, path, RES, band, core=core)
+    assert tiled.n_tiles - tiled.n_skipped > 4
+    a = np.lexsort(one.keys.T)
+    b = np.lexsort(tiled.keys.T)
+    assert np.array_equal(one.keys[a], tiled.keys[b])
+    np.testing.assert_allclose(tiled.probs[b], one.probs[a], rtol=0, atol=1e-6)
+    # a halo below the receptive radius is not exact
+    short = predict_tiles(model, keys, path, RES, band, core=core, halo=model.stride())
+    c = np.lexsort(short.keys.T)
+    assert np.abs(short.probs[c] - one.probs[a]).max() > 1e-6
+
+
+def test_checkpoint_round_trip_and_kind_errors(tmp_path) -> None:
+    from stages.complete.voxel_checkpoint import (
+        VoxelMeta,
+        checkpoint_kind,
+        load_voxel_checkpoint,
+        save_voxel_checkpoint,
+    )
+
+    model = VoxelUNet(VoxelNetConfig(widths=(3, 4)))
+    meta = VoxelMeta(model.config, RES, 0.4, Band(), train={"note": "test"})
+    path = save_voxel_checkpoint(tmp_path / "v.safetensors", model, meta, half=False)
+    assert checkpoint_kind(path) == "voxel_unet"
+    back, m2 = load_voxel_checkpoint(path)
+    assert m2.threshold == 0.4 and m2.resolution == RES and m2.config == model.config
+    for k, v in model.state_dict().items():
+        assert torch.equal(back.state_dict()[k], v)
+    from safetensors.torch import save_file
+
+    other = tmp_path / "u.safetensors"
+    save_file({"w": torch.zeros(1)}, str(other), metadata={"format": "radar-pipeline/complete", "format_version": "1"})
+    assert checkpoint_kind(other) == "uppointr"
+    with pytest.raises(UserError, match="uppointr checkpoint, not a voxel model"):
+        load_voxel_checkpoint(other)

@@ -1,0 +1,87 @@
+"""Training pieces of the voxel model: augmentation by the lattice's symmetries, the imbalance-aware loss,
+the learning-rate schedule, validation counts, the union rule (decided on validation scenes only)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from stages.complete.train_voxel import (  # noqa: E402
+    Crop,
+    SceneData,
+    VoxelTrainConfig,
+    augment,
+    loss_fn,
+    lr_at,
+    make_crop,
+    validate,
+)
+from stages.complete.voxel_grid import Band  # noqa: E402
+from stages.complete.voxel_net import VoxelNetConfig, VoxelUNet  # noqa: E402
+
+
+def _scene() -> SceneData:
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 1, 40)
+    traj = np.stack([t * 3, t, np.ones_like(t)], 1)
+    lid = np.unique(np.floor((traj[rng.integers(40, size=400)] + rng.normal(0, 0.8, (400, 3))) / 0.15), axis=0)
+    return SceneData("toy", lid[::3].astype(np.int64), lid.astype(np.int64), traj)
+
+
+def test_augment_keeps_features_labels_and_mask_aligned() -> None:
+    cfg = VoxelTrainConfig(crop_xy=32, crop_z=16, margin=4)
+    crop = make_crop(_scene(), np.array([1.5, 0.5, 1.0]), cfg, Band(2.0, -1.0, 1.0), 8)
+    rng = np.random.default_rng(3)
+    for _ in range(6):
+        a = augment(crop, rng)
+        assert a.features.shape == crop.features.shape and a.label.shape == crop.label.shape
+        assert a.label.sum() == crop.label.sum() and a.mask.sum() == crop.mask.sum()
+        # a radar voxel stays where its label is: the same symmetry moved both
+        assert np.sum(a.features[0] * a.label) == np.sum(crop.features[0] * crop.label)
+
+
+def test_loss_prefers_the_truth_and_ignores_unmasked_voxels() -> None:
+    lab = torch.zeros(1, 8, 8, 8)
+    lab[0, 2:4, 2:4, 2:4] = 1
+    mask = torch.ones_like(lab)
+    mask[0, 6:] = 0
+    good = (lab * 2 - 1) * 12
+    bad = -good
+    assert loss_fn(good, lab, mask, 2.0, 1.0) < 0.05 < loss_fn(bad, lab, mask, 2.0, 1.0)
+    noisy = good.clone()
+    noisy[0, 6:] = 10.0  # outside the mask: no effect
+    assert torch.isclose(loss_fn(noisy, lab, mask, 2.0, 1.0), loss_fn(good, lab, mask, 2.0, 1.0))
+
+
+def test_lr_follows_a_cosine_over_the_time_budget() -> None:
+    cfg = VoxelTrainConfig(lr=1e-3, time_limit=100.0)
+    assert lr_at(cfg, 0) == pytest.approx(1e-3)
+    assert lr_at(cfg, 100) == pytest.approx(5e-5)
+    assert lr_at(cfg, 50) == pytest.approx(1e-3 * (0.05 + 0.95 * 0.5))
+
+
+def test_validate_reports_f1_at_its_best_threshold() -> None:
+    model = VoxelUNet(VoxelNetConfig(widths=(3, 4))).eval()
+    cfg = VoxelTrainConfig(crop_xy=16, crop_z=8)
+    rng = np.random.default_rng(0)
+    lab = (rng.random((16, 16, 8)) < 0.2).astype(np.float32)
+    crop = Crop(rng.random((5, 16, 16, 8)).astype(np.float32), lab, np.ones_like(lab))
+    v = validate(model, [crop], cfg)
+    assert 0 <= v["val_f1"] <= 1 and v["val_threshold"] in np.round(np.arange(0.05, 0.951, 0.05), 2)
+    assert v["val_f1"] == max(v["val_f1_by_threshold"]) or abs(v["val_f1"] - max(v["val_f1_by_threshold"])) < 1e-4
+
+
+def test_union_rule_is_decided_on_validation_tables_only() -> None:
+    from stages.complete.voxel_table3 import decide_union
+
+    def table(split: str, cd_alone: float, cd_union: float, f_alone: float, f_union: float) -> dict:
+        return {"split": split, "overall": {"voxel": {"cd_l2": cd_alone, "fscore_0.15": f_alone},
+                                            "voxel + prefiltered radar": {"cd_l2": cd_union, "fscore_0.15": f_union}}}
+
+    assert decide_union(table("val", 0.5, 0.4, 0.50, 0.495))
+    assert not decide_union(table("val", 0.5, 0.4, 0.50, 0.48))
+    assert not decide_union(table("val", 0.4, 0.5, 0.50, 0.52))
+    with pytest.raises(ValueError, match="validation scenes only"):
+        decide_union(table("test", 0.5, 0.4, 0.5, 0.5))
