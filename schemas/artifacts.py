@@ -77,11 +77,13 @@ ARTIFACTS: dict[str, ArtifactSchema] = {
             "radar ego-velocity per scan in the radar frame",
         ),
         ArtifactSchema(
-            "odometry", "odometry", "odometry.parquet", 2,
+            "odometry", "odometry", "odometry.parquet", 3,
             _s(("scan", I32), ("t_ns", I64), ("x", F64), ("y", F64), ("z", F64), ("roll", F64), ("pitch", F64),
-               ("yaw", F64)),
+               ("yaw", F64), ("cov_xx", F64), ("cov_xy", F64), ("cov_xyaw", F64), ("cov_yy", F64),
+               ("cov_yyaw", F64), ("cov_yawyaw", F64)),
             "odometry world<-base at radar scan times: x, y, yaw anchored in the plane; z, roll, pitch (Z-Y-X) "
-            "as estimated (z shifted with the anchor)",
+            "as estimated (z shifted with the anchor); cov_*: covariance of the body-frame increment (dx, dy, "
+            "dyaw) from the previous scan (0 on the first)",
         ),
         ArtifactSchema(
             "trajectory", "slam", "trajectory.parquet", 1,

@@ -16,6 +16,7 @@ from pipeline.recording import entity_paths_in
 from pipeline.sequences import SequenceInfo
 from pipeline.stage import StageContext
 from schemas.io import read_artifact, write_artifact
+from stages.odometry.stage import cov_columns
 from stages.slam import hilbert_map as hm
 from stages.slam.stage import STAGE, SlamParams
 from stages.slam.synthetic import make_run, ray_cast
@@ -62,7 +63,7 @@ def _write_inputs(root: Path, n: int, seed: int = 0, odometry: str = "odometry")
                    filt / "radar_filtered.parquet", "radar_filtered")
     poses = run.groundtruth if odometry == "groundtruth" else run.odometry
     write_artifact({"scan": np.arange(n, dtype=np.int32), "t_ns": t_ns, "x": poses[:, 0], "y": poses[:, 1],
-                    "z": np.zeros(n), "roll": np.zeros(n), "pitch": np.zeros(n), "yaw": poses[:, 2]},
+                    "z": np.zeros(n), "roll": np.zeros(n), "pitch": np.zeros(n), "yaw": poses[:, 2], **cov_columns(n)},
                    odo / "odometry.parquet", "odometry")
     return {"run": run, "dirs": {"ingest": ingest, "filter": filt, "odometry": odo}}
 
@@ -196,7 +197,8 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
     # anchored at the ground truth (the odometry stage's default): the errors without alignment as well
     odo_xy = inp["run"].odometry
     write_artifact({"scan": np.arange(25, dtype=np.int32), "t_ns": t_ns, "x": odo_xy[:, 0], "y": odo_xy[:, 1],
-                    "z": np.zeros(25), "roll": np.zeros(25), "pitch": np.zeros(25), "yaw": odo_xy[:, 2]},
+                    "z": np.zeros(25), "roll": np.zeros(25), "pitch": np.zeros(25), "yaw": odo_xy[:, 2],
+                    **cov_columns(25)},
                    inp["dirs"]["odometry"] / "odometry.parquet", "odometry", metadata={"anchor": "groundtruth"})
     out2 = tmp_path / "t3_anchored.jsonl"
     assert table3.main([str(tmp_path / "seq_a"), "--methods", "odometry,fastslam_grid", "--seeds", "0",

@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from pipeline.errors import UserError
 from pipeline.recording import entity_paths_in
 from schemas.io import read_artifact, write_artifact
+from stages.odometry.stage import cov_columns
 from stages.voxel.stage import STAGE, VoxelParams
 from stages.voxel.voxel_map import coord_to_key
 from tests.test_voxel_synthetic import BASE_FROM_LIDAR, distance_to_surfaces, make_context, write_ingest
@@ -107,7 +108,7 @@ def test_voxel_stage_odometry_trajectory(tmp_path: Path, ingest_dir: Path, gt_ru
     n = gt.num_rows
     write_artifact({"scan": np.arange(n, dtype=np.int32), "t_ns": gt.column("t_ns").to_numpy(),
                     "x": gt.column("x").to_numpy(), "y": gt.column("y").to_numpy(), "yaw": yaw,
-                    "z": np.zeros(n), "roll": np.zeros(n), "pitch": np.zeros(n)},
+                    "z": np.zeros(n), "roll": np.zeros(n), "pitch": np.zeros(n), **cov_columns(n)},
                    odo / "odometry.parquet", "odometry")
     out, stats = _run(tmp_path, params, {"ingest": ingest_dir, "odometry": odo})
     assert stats["se2_height"] == pytest.approx(gt.column("z").to_numpy()[0])
