@@ -38,6 +38,9 @@ def _s(*fields: tuple[str, pa.DataType]) -> pa.Schema:
 
 
 _POINT_COLS = (("x", F32), ("y", F32), ("z", F32))
+#: odometry.parquet's increment covariance columns and the (row, column) of the 3 x 3 (dx, dy, dyaw) they hold
+ODOMETRY_COV_COLS = ("cov_xx", "cov_xy", "cov_xyaw", "cov_yy", "cov_yyaw", "cov_yawyaw")
+ODOMETRY_COV_IDX = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 #: map coordinates (voxel maps, patches, completed maps) are float64: published maps are compared on their
 #: stored float64 values (the F-score at d = one voxel decides lattice-neighbour ties on them)
 _MAP_COLS = (("x", F64), ("y", F64), ("z", F64))

@@ -145,13 +145,30 @@ def test_zero_motion_noise_reproduces_odometry(tmp_path: Path) -> None:
     inp = _write_inputs(tmp_path / "in", 15)
     _run(_ctx(tmp_path / "out", inp["dirs"], n_particles=4, n_basis=36, motion_std_xy=0.0, motion_std_yaw=0.0,
               motion_rel_trans=0.0, motion_rel_rot=0.0, motion_rot_per_trans=0.0, motion_trans_per_rot=0.0,
-              methods=["fastslam_grid", "rich_slam"], workers=0, n_map_snapshots=0))
+              proposal="gmapping", yaw_bias=False, methods=["fastslam_grid", "rich_slam"], workers=0,
+              n_map_snapshots=0))
     odo = pq.read_table(inp["dirs"]["odometry"] / "odometry.parquet")
     for m in ("fastslam_grid", "rich_slam"):
         t = pq.read_table(tmp_path / "out" / f"trajectory_{m}.parquet")
         for c in ("x", "y", "yaw"):
             np.testing.assert_allclose(t[c].to_numpy(), odo[c].to_numpy(), atol=1e-9)
         np.testing.assert_allclose(t["n_eff"].to_numpy(), 4.0)
+
+
+def test_zero_odometry_covariance_without_bias_reproduces_odometry_and_paper_method_runs(tmp_path: Path) -> None:
+    inp = _write_inputs(tmp_path / "in", 15)
+    odo = pq.read_table(inp["dirs"]["odometry"] / "odometry.parquet").to_pydict()
+    for c in ("cov_xx", "cov_xy", "cov_xyaw", "cov_yy", "cov_yyaw", "cov_yawyaw"):
+        odo[c] = np.zeros(15)
+    write_artifact(odo, inp["dirs"]["odometry"] / "odometry.parquet", "odometry")
+    _run(_ctx(tmp_path / "out", inp["dirs"], n_particles=4, n_basis=36, yaw_bias=False,
+              methods=["fastslam_grid", "rich_slam", "rich_slam_paper"], workers=0, n_map_snapshots=0))
+    for m in ("fastslam_grid", "rich_slam"):  # the odometry's own (zero) covariance: no noise at all
+        t = pq.read_table(tmp_path / "out" / f"trajectory_{m}.parquet")
+        for c in ("x", "y", "yaw"):
+            np.testing.assert_allclose(t[c].to_numpy(), odo[c], atol=1e-9)
+    paper = pq.read_table(tmp_path / "out" / "trajectory_rich_slam_paper.parquet")  # the fitted GMapping noise
+    assert np.abs(paper["x"].to_numpy() - odo["x"]).max() > 1e-4
 
 
 def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:

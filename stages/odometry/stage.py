@@ -22,6 +22,7 @@ from pydantic import Field
 
 from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams
+from schemas.artifacts import ODOMETRY_COV_COLS, ODOMETRY_COV_IDX
 from schemas.io import read_artifact, write_artifact
 from stages.ingest.geometry import interpolate_poses, roll_pitch_of, yaw_of
 from stages.odometry.ekf_rio import EkfConfig, increment_covariance, run_ekf
@@ -29,8 +30,7 @@ from stages.odometry.metrics import drift, increment_nees, se2_compose_anchor, s
 
 POSE_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 #: the increment covariance's columns (body frame of the previous scan: dx, dy, dyaw)
-COV_COLS = ("cov_xx", "cov_xy", "cov_xyaw", "cov_yy", "cov_yyaw", "cov_yawyaw")
-_COV_IDX = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+COV_COLS, _COV_IDX = ODOMETRY_COV_COLS, ODOMETRY_COV_IDX
 
 
 def bag_increment_covariance(u: npt.NDArray[np.float64], std_xy: float, rel_trans: float, std_yaw: float,
