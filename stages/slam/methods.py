@@ -26,6 +26,7 @@ from stages.slam.rbpf import (
     FilterHistory,
     HilbertParticleMaps,
     HilbertWeighting,
+    MapModel,
     MotionNoise,
     Proposal,
     Resampling,
@@ -89,6 +90,12 @@ class SlamConfig:
     free_weight: float = 1.0
     #: sigma_n^2 of the endpoints' +1 labels in the map update (None: ``noise_variance`` for all, eq. 15)
     endpoint_noise_variance: float | None = None
+
+    def map_model(self, method: str, form: Literal["information", "covariance"] = "information") -> MapModel:
+        """The particle maps' parameter object of a Hilbert method (every backend takes it)."""
+        return MapModel(self.lengthscale_m, self.signal_variance, self.noise_variance, self.weighting(method),
+                        update=self.map_update, dtype=np.dtype(self.dtype), laplace_iterations=self.laplace_iterations,
+                        form=form, endpoint_noise_variance=self.endpoint_noise_variance)
 
     def weighting(self, method: str) -> HilbertWeighting:
         return HilbertWeighting(
@@ -183,10 +190,7 @@ def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_pa
     """The particle maps of a Hilbert method, in ``workers`` processes when ``workers > 0``."""
     factory: Callable[..., HilbertParticleMaps | ParallelHilbertMaps] = (
         partial(ParallelHilbertMaps, workers=cfg.workers) if cfg.workers > 0 else HilbertParticleMaps)
-    return factory(basis, n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
-                   cfg.weighting(method), update=cfg.map_update, dtype=np.dtype(cfg.dtype),
-                   laplace_iterations=cfg.laplace_iterations, form=form,
-                   endpoint_noise_variance=cfg.endpoint_noise_variance)
+    return factory(basis, n_particles, cfg.map_model(method, form))
 
 
 Observer = Callable[[int, RBPF, int], None]
@@ -270,8 +274,7 @@ def _run_torch(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, form: Liter
         raise ValueError(f"{method} (pose refinement) runs on the numpy backend only; set slam.backend = numpy")
     if cfg.endpoint_noise_variance is not None:
         raise ValueError("endpoint_noise_variance runs on the numpy backend only; set slam.backend = numpy")
-    maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
-                            cfg.weighting(method), dtype=cfg.dtype, form=form, device=device)
+    maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.map_model(method, form), device=device)
     f = TorchRBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold,
                   proposal=proposal)
     with cpu_threads(cfg.torch_threads if device == "cpu" else 0):

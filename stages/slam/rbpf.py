@@ -235,6 +235,24 @@ class HilbertWeighting:
     free_weight: float = 1.0
 
 
+@dataclass(frozen=True)
+class MapModel:
+    """The Hilbert-GP particle maps' model and numerics: one parameter object for every backend
+    (:class:`HilbertParticleMaps`, ``parallel.ParallelHilbertMaps``, ``torch_maps.TorchHilbertMaps``)."""
+
+    #: SE length scale l (m) and signal variance sigma_f^2 of the prior (eq. 9), label noise sigma_n^2 (eq. 15)
+    lengthscale: float
+    signal_variance: float
+    noise_variance: float
+    weighting: HilbertWeighting = field(default_factory=HilbertWeighting)
+    update: Literal["kalman", "laplace"] = "kalman"
+    dtype: npt.DTypeLike = np.float64
+    laplace_iterations: int = 20
+    form: Literal["information", "covariance"] = "information"
+    #: sigma_n^2 of the +1 samples (None: ``noise_variance`` for all, eq. 15)
+    endpoint_noise_variance: float | None = None
+
+
 class CovarianceMetric:
     """Quadratic forms ``u^T cov v`` with the covariance stored: ``transform(V) = V cov``."""
 
@@ -441,24 +459,15 @@ class HilbertParticleMaps:
     computed in one BLAS call per particle, so the following ``update`` (same poses) reuses them.
     """
 
-    def __init__(
-        self,
-        basis: hm.HilbertBasis,
-        n_particles: int,
-        lengthscale: float,
-        signal_variance: float,
-        noise_variance: float,
-        weighting: HilbertWeighting,
-        update: Literal["kalman", "laplace"] = "kalman",
-        dtype: npt.DTypeLike = np.float64,
-        laplace_iterations: int = 20,
-        form: Literal["information", "covariance"] = "information",
-        arrays: tuple[F64, ...] | None = None,
-        endpoint_noise_variance: float | None = None,
-    ) -> None:
+    def __init__(self, basis: hm.HilbertBasis, n_particles: int, model: MapModel,
+                 arrays: tuple[F64, ...] | None = None) -> None:
         """``arrays``: existing stacks to work on in place: ``(theta, info, eta)`` (information form) or
-        ``(theta, cov)`` (covariance form, lower triangles). ``endpoint_noise_variance``: sigma_n^2 of the
-        +1 samples (the free samples keep ``noise_variance``); None: one value for both, as in eq. 15."""
+        ``(theta, cov)`` (covariance form, lower triangles). ``model.endpoint_noise_variance``: sigma_n^2 of
+        the +1 samples (the free samples keep ``noise_variance``); None: one value for both, as in eq. 15."""
+        self.model = model
+        lengthscale, signal_variance, noise_variance = model.lengthscale, model.signal_variance, model.noise_variance
+        weighting, update, dtype, form = model.weighting, model.update, model.dtype, model.form
+        laplace_iterations, endpoint_noise_variance = model.laplace_iterations, model.endpoint_noise_variance
         self.basis = basis
         self.noise_variance = noise_variance
         self.endpoint_noise_variance = endpoint_noise_variance
