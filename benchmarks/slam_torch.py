@@ -44,8 +44,7 @@ def time_torch_filter(cfg: SlamConfig, beams: int, steps: int, M: int, device: s
     run, scans = corridor_scans(beams, steps + warmup)
     basis = hm.make_basis([20.0, 16.0], [0.0, 0.0], M)
     chosen = choose_form(cfg, "rich_slam", scans, M) if form == "auto" else form
-    maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
-                            cfg.weighting("rich_slam"), dtype=cfg.dtype, form=chosen,  # type: ignore[arg-type]
+    maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.map_model("rich_slam", chosen),  # type: ignore[arg-type]
                             device=device)
     u = odometry_increments(run.odometry)
     dev = torch.device(device)

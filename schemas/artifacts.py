@@ -38,6 +38,9 @@ def _s(*fields: tuple[str, pa.DataType]) -> pa.Schema:
 
 
 _POINT_COLS = (("x", F32), ("y", F32), ("z", F32))
+#: odometry.parquet's increment covariance columns and the (row, column) of the 3 x 3 (dx, dy, dyaw) they hold
+ODOMETRY_COV_COLS = ("cov_xx", "cov_xy", "cov_xyaw", "cov_yy", "cov_yyaw", "cov_yawyaw")
+ODOMETRY_COV_IDX = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 #: map coordinates (voxel maps, patches, completed maps) are float64: published maps are compared on their
 #: stored float64 values (the F-score at d = one voxel decides lattice-neighbour ties on them)
 _MAP_COLS = (("x", F64), ("y", F64), ("z", F64))
@@ -77,11 +80,13 @@ ARTIFACTS: dict[str, ArtifactSchema] = {
             "radar ego-velocity per scan in the radar frame",
         ),
         ArtifactSchema(
-            "odometry", "odometry", "odometry.parquet", 2,
+            "odometry", "odometry", "odometry.parquet", 3,
             _s(("scan", I32), ("t_ns", I64), ("x", F64), ("y", F64), ("z", F64), ("roll", F64), ("pitch", F64),
-               ("yaw", F64)),
+               ("yaw", F64), ("cov_xx", F64), ("cov_xy", F64), ("cov_xyaw", F64), ("cov_yy", F64),
+               ("cov_yyaw", F64), ("cov_yawyaw", F64)),
             "odometry world<-base at radar scan times: x, y, yaw anchored in the plane; z, roll, pitch (Z-Y-X) "
-            "as estimated (z shifted with the anchor)",
+            "as estimated (z shifted with the anchor); cov_*: covariance of the body-frame increment (dx, dy, "
+            "dyaw) from the previous scan (0 on the first)",
         ),
         ArtifactSchema(
             "trajectory", "slam", "trajectory.parquet", 1,

@@ -20,6 +20,7 @@ from pipeline.sequences import SequenceInfo
 from pipeline.stage import StageContext, StageParams
 from pipeline.store import MANIFEST, write_json_atomic
 from schemas import write_artifact
+from stages.odometry.stage import cov_columns
 
 F64 = npt.NDArray[np.float64]
 
@@ -165,7 +166,8 @@ def write_synthetic_run(runs: Path, seq: str = "synth", duration: float = 30.0, 
         return {"scan": scans, "t_ns": s.scan_t, "x": a[:, 0], "y": a[:, 1], "yaw": a[:, 2]}
 
     zeros = np.zeros(len(scans))
-    write_stage(runs, seq, "odometry", {"odometry.parquet": ({**traj(odo), "z": zeros, "roll": zeros, "pitch": zeros},
+    write_stage(runs, seq, "odometry", {"odometry.parquet": ({**traj(odo), "z": zeros, "roll": zeros, "pitch": zeros,
+                                                              **cov_columns(len(scans))},
                                                              "odometry")})
     slam_files: dict = {f"trajectory_{m}.parquet": ({**traj(a), "n_eff": np.ones(len(scans))}, "trajectory")
                         for m, a in (("rich_slam", slam), ("fastslam_grid", drifted(truth, ts, 0.005, 1.0, (0, 0, 0))))}

@@ -11,6 +11,7 @@ from pipeline.errors import UserError
 from pipeline.export import export
 from pipeline.store import RunStore
 from schemas import write_artifact
+from stages.odometry.stage import cov_columns
 
 T0 = 1_600_000_000_000_000_000
 N = 20
@@ -36,7 +37,8 @@ def write_run(root: Path, gt: bool = True, odo_z: bool = False, slam: bool = Fal
         rows = {k: v[:0] for k, v in rows.items()}
     write_artifact(rows, st.stage_dir("ingest") / "groundtruth.parquet", "groundtruth")
     odo = {"scan": np.arange(N, dtype=np.int32), "t_ns": SCAN_T, "x": np.arange(N) * 1.0, "y": np.ones(N),
-           "yaw": np.linspace(0, 1, N), "z": np.zeros(N), "roll": np.zeros(N), "pitch": np.zeros(N)}
+           "yaw": np.linspace(0, 1, N), "z": np.zeros(N), "roll": np.zeros(N), "pitch": np.zeros(N),
+           **cov_columns(N)}
     if odo_z:  # an odometry that estimated height and attitude
         odo["z"] = 1.0 + 0.01 * np.arange(N)
         odo["roll"], odo["pitch"] = np.full(N, 0.05), np.full(N, -0.03)
@@ -146,7 +148,7 @@ def test_invalid_poses_and_uncovered_stamps_are_left_out_and_said(tmp_path: Path
     store = write_run(tmp_path)
     odo = {"scan": np.arange(N + 1, dtype=np.int32), "t_ns": np.r_[SCAN_T, GT_T[-1] + 3_000_000_000],
            "x": np.r_[np.arange(N) * 1.0, 0.0], "y": np.ones(N + 1), "yaw": np.zeros(N + 1),
-           "z": np.zeros(N + 1), "roll": np.zeros(N + 1), "pitch": np.zeros(N + 1),
+           "z": np.zeros(N + 1), "roll": np.zeros(N + 1), "pitch": np.zeros(N + 1), **cov_columns(N + 1),
            "valid": np.r_[np.ones(N, bool), True]}
     odo["valid"][3] = False
     odo["x"][4] = np.nan

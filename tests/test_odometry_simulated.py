@@ -19,6 +19,7 @@ from pipeline.runner import Runner
 from pipeline.sequences import SequenceInfo
 from schemas.io import read_artifact
 from stages.ingest.geometry import pose_matrix, poses_to_matrices
+from stages.odometry.metrics import NEES_TOLERANCE
 from tests.test_ingest import run_unwrapped
 
 simulator = pytest.importorskip("simulator")
@@ -88,6 +89,10 @@ def test_simulated_sequence_end_to_end(simulated: dict[str, Path], tmp_path: Pat
     assert fstats["labels"]["true_kept"] > 0.8 and fstats["labels"]["clutter_rejected"] > 0.9
     ostats = json.loads((out / "odometry" / "manifest.json").read_text())["stats"]
     assert ostats["anchor"] == "groundtruth" and ostats["drift"]["drift_pct_of_distance"] < 3.0
+    # the increment covariance (issue 27): not overconfident on the simulator's errors (the NEES check;
+    # stages/odometry/README.md): 95 % of the normalised increment errors below chi-square(3)'s 95 % point
+    nees = ostats["increment_nees"]
+    assert nees["increments"] >= 100 and nees["share_below_chi2_95"] >= 0.95 and nees["mean"] <= 3.0 * NEES_TOLERANCE
 
 
 def test_bag_and_folder_forms_ingest_the_same_points(simulated: dict[str, Path], tmp_path: Path) -> None:

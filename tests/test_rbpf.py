@@ -12,6 +12,7 @@ from stages.slam.rbpf import (
     RESAMPLERS,
     HilbertParticleMaps,
     HilbertWeighting,
+    MapModel,
     MotionNoise,
     compose,
     effective_sample_size,
@@ -140,7 +141,7 @@ def test_odometry_increments_and_propagation() -> None:
 def test_resampled_maps_do_not_alias(form: str) -> None:
     rng = np.random.default_rng(4)
     b = hm.make_basis([5.0, 5.0], [0.0, 0.0], 36)
-    maps = HilbertParticleMaps(b, 3, 1.0, 4.0, 0.36, HilbertWeighting(), form=form)  # type: ignore[arg-type]
+    maps = HilbertParticleMaps(b, 3, MapModel(1.0, 4.0, 0.36, HilbertWeighting(), form=form))  # type: ignore[arg-type]
     poses = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.5], [0.0, 1.0, 1.0]])
     s = sample_beams(rng.uniform(-3, 3, (5, 2)), [0, 0], 1.0, 5.0)
     maps.update(poses, s)
@@ -166,8 +167,8 @@ def test_information_and_covariance_particle_maps_agree(et_variance: str, update
     rng = np.random.default_rng(7)
     b = hm.make_basis([8.0, 8.0], [0.0, 0.0], 64)
     w = HilbertWeighting(et_variance=et_variance)  # type: ignore[arg-type]
-    a = HilbertParticleMaps(b, 4, 1.5, 16.0, 0.36, w, form="information", update=update)  # type: ignore[arg-type]
-    c = HilbertParticleMaps(b, 4, 1.5, 16.0, 0.36, w, form="covariance", update=update)  # type: ignore[arg-type]
+    a = HilbertParticleMaps(b, 4, MapModel(1.5, 16.0, 0.36, w, form="information", update=update))  # type: ignore[arg-type]
+    c = HilbertParticleMaps(b, 4, MapModel(1.5, 16.0, 0.36, w, form="covariance", update=update))  # type: ignore[arg-type]
     for _ in range(20):
         poses = np.column_stack([rng.uniform(-2, 2, (4, 2)), rng.uniform(-3, 3, 4)])
         s = sample_beams(rng.uniform(-4, 4, (6, 2)), [0.1, 0.0], 1.0, 5.0)
@@ -248,11 +249,11 @@ def test_parallel_workers_equal_in_process_filter(form: str) -> None:
     scans = [sample_beams(s, [0, 0], 1.0, 5.0) for s in run.scans]
     b = hm.make_basis([14.0, 10.0], [0.0, 0.0], 64)
     u = odometry_increments(run.odometry)
-    serial = HilbertParticleMaps(b, 7, 2.0, 16.0, 0.36, HilbertWeighting(), form=form)  # type: ignore[arg-type]
+    serial = HilbertParticleMaps(b, 7, MapModel(2.0, 16.0, 0.36, HilbertWeighting(), form=form))  # type: ignore[arg-type]
     f1 = RBPF(serial, run.odometry[0], 7, MotionNoise(), np.random.default_rng(0))
     h1 = f1.run(u, scans)
-    with ParallelHilbertMaps(b, 7, 2.0, 16.0, 0.36, HilbertWeighting(), workers=2,
-                             form=form) as par:  # type: ignore[arg-type]
+    with ParallelHilbertMaps(b, 7, MapModel(2.0, 16.0, 0.36, HilbertWeighting(), form=form),  # type: ignore[arg-type]
+                             workers=2) as par:
         f2 = RBPF(par, run.odometry[0], 7, MotionNoise(), np.random.default_rng(0))
         h2 = f2.run(u, scans)
         assert any(h2.resampled)
@@ -267,8 +268,8 @@ def test_stacked_covariance_stays_symmetric_pd_over_thousands_of_updates() -> No
     rng = np.random.default_rng(9)
     b = hm.make_basis([6.0, 6.0], [0.0, 0.0], 64)
     w = HilbertWeighting(endpoint_tolerance=0.0)
-    c = HilbertParticleMaps(b, 2, 1.0, 16.0, 0.36, w, form="covariance")
-    i = HilbertParticleMaps(b, 2, 1.0, 16.0, 0.36, w, form="information")
+    c = HilbertParticleMaps(b, 2, MapModel(1.0, 16.0, 0.36, w, form="covariance"))
+    i = HilbertParticleMaps(b, 2, MapModel(1.0, 16.0, 0.36, w, form="information"))
     for _ in range(2000):
         poses = np.column_stack([rng.uniform(-1, 1, (2, 2)), rng.uniform(-3, 3, 2)])
         s = sample_beams(rng.uniform(-3, 3, (int(rng.integers(1, 6)), 2)), [0, 0], 0.5, 5.0)
@@ -309,9 +310,9 @@ def test_fused_blocked_step_equals_weight_then_update(weighting: HilbertWeightin
     followed by ``update`` on the unblocked maps."""
     rng = np.random.default_rng(12)
     b = hm.make_basis([8.0, 8.0], [0.0, 0.0], 64)
-    fused = HilbertParticleMaps(b, 5, 1.5, 16.0, 0.36, weighting, form="information")
+    fused = HilbertParticleMaps(b, 5, MapModel(1.5, 16.0, 0.36, weighting, form="information"))
     fused.block_bytes = 1  # one particle per block
-    plain = HilbertParticleMaps(b, 5, 1.5, 16.0, 0.36, weighting, form="information")
+    plain = HilbertParticleMaps(b, 5, MapModel(1.5, 16.0, 0.36, weighting, form="information"))
     for _ in range(15):
         poses = np.column_stack([rng.uniform(-2, 2, (5, 2)), rng.uniform(-3, 3, 5)])
         s = sample_beams(rng.uniform(-4, 4, (int(rng.integers(0, 7)), 2)), [0.1, 0.0], 1.0, 5.0)
@@ -355,9 +356,9 @@ def test_endpoint_noise_variance_equals_batch_heteroscedastic_regression(form: s
     rng = np.random.default_rng(11)
     b = hm.make_basis([8.0, 8.0], [0.0, 0.0], 64)
     w = HilbertWeighting()
-    het = HilbertParticleMaps(b, 3, 1.5, 16.0, 0.36, w, form=form,  # type: ignore[arg-type]
-                              endpoint_noise_variance=0.09)
-    one = HilbertParticleMaps(b, 3, 1.5, 16.0, 0.36, w, form=form)  # type: ignore[arg-type]
+    het = HilbertParticleMaps(b, 3, MapModel(1.5, 16.0, 0.36, w, form=form,  # type: ignore[arg-type]
+                                             endpoint_noise_variance=0.09))
+    one = HilbertParticleMaps(b, 3, MapModel(1.5, 16.0, 0.36, w, form=form))  # type: ignore[arg-type]
     rows: list[list[np.ndarray]] = [[] for _ in range(3)]
     labels: list[np.ndarray] = []
     for _ in range(12):
@@ -388,10 +389,10 @@ def test_endpoint_noise_fused_step_and_workers_equal_weight_then_update() -> Non
 
     rng = np.random.default_rng(12)
     b = hm.make_basis([8.0, 8.0], [0.0, 0.0], 64)
-    ref = HilbertParticleMaps(b, 5, 1.5, 16.0, 0.36, HilbertWeighting(), endpoint_noise_variance=0.09)
-    fused = HilbertParticleMaps(b, 5, 1.5, 16.0, 0.36, HilbertWeighting(), endpoint_noise_variance=0.09)
-    with ParallelHilbertMaps(b, 5, 1.5, 16.0, 0.36, HilbertWeighting(), workers=2,
-                             endpoint_noise_variance=0.09) as par:
+    ref = HilbertParticleMaps(b, 5, MapModel(1.5, 16.0, 0.36, HilbertWeighting(), endpoint_noise_variance=0.09))
+    fused = HilbertParticleMaps(b, 5, MapModel(1.5, 16.0, 0.36, HilbertWeighting(), endpoint_noise_variance=0.09))
+    with ParallelHilbertMaps(b, 5, MapModel(1.5, 16.0, 0.36, HilbertWeighting(), endpoint_noise_variance=0.09),
+                             workers=2) as par:
         for _ in range(6):
             poses = np.column_stack([rng.uniform(-2, 2, (5, 2)), rng.uniform(-3, 3, 5)])
             s = sample_beams(rng.uniform(-4, 4, (6, 2)), [0.1, 0.0], 1.0, 5.0)

@@ -49,8 +49,7 @@ def test_refinement_returns_a_scan_to_the_pose_its_map_was_built_from() -> None:
     half, centre = domain_from_trajectory(run.groundtruth[:, :2], 5.0)
     basis = hm.make_basis(half, centre, 256)
     cfg = SlamConfig()
-    maps = HilbertParticleMaps(basis, 1, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
-                               cfg.weighting("rich_slam"), form="covariance")
+    maps = HilbertParticleMaps(basis, 1, cfg.map_model("rich_slam", "covariance"))
     k = 30
     for _ in range(5):
         maps.update(run.groundtruth[k : k + 1], scans[k])

@@ -16,6 +16,7 @@ from pipeline.recording import entity_paths_in
 from pipeline.sequences import SequenceInfo
 from pipeline.stage import StageContext
 from schemas.io import read_artifact, write_artifact
+from stages.odometry.stage import cov_columns
 from stages.slam import hilbert_map as hm
 from stages.slam.stage import STAGE, SlamParams
 from stages.slam.synthetic import make_run, ray_cast
@@ -62,7 +63,7 @@ def _write_inputs(root: Path, n: int, seed: int = 0, odometry: str = "odometry")
                    filt / "radar_filtered.parquet", "radar_filtered")
     poses = run.groundtruth if odometry == "groundtruth" else run.odometry
     write_artifact({"scan": np.arange(n, dtype=np.int32), "t_ns": t_ns, "x": poses[:, 0], "y": poses[:, 1],
-                    "z": np.zeros(n), "roll": np.zeros(n), "pitch": np.zeros(n), "yaw": poses[:, 2]},
+                    "z": np.zeros(n), "roll": np.zeros(n), "pitch": np.zeros(n), "yaw": poses[:, 2], **cov_columns(n)},
                    odo / "odometry.parquet", "odometry")
     return {"run": run, "dirs": {"ingest": ingest, "filter": filt, "odometry": odo}}
 
@@ -144,13 +145,30 @@ def test_zero_motion_noise_reproduces_odometry(tmp_path: Path) -> None:
     inp = _write_inputs(tmp_path / "in", 15)
     _run(_ctx(tmp_path / "out", inp["dirs"], n_particles=4, n_basis=36, motion_std_xy=0.0, motion_std_yaw=0.0,
               motion_rel_trans=0.0, motion_rel_rot=0.0, motion_rot_per_trans=0.0, motion_trans_per_rot=0.0,
-              methods=["fastslam_grid", "rich_slam"], workers=0, n_map_snapshots=0))
+              proposal="gmapping", yaw_bias=False, methods=["fastslam_grid", "rich_slam"], workers=0,
+              n_map_snapshots=0))
     odo = pq.read_table(inp["dirs"]["odometry"] / "odometry.parquet")
     for m in ("fastslam_grid", "rich_slam"):
         t = pq.read_table(tmp_path / "out" / f"trajectory_{m}.parquet")
         for c in ("x", "y", "yaw"):
             np.testing.assert_allclose(t[c].to_numpy(), odo[c].to_numpy(), atol=1e-9)
         np.testing.assert_allclose(t["n_eff"].to_numpy(), 4.0)
+
+
+def test_zero_odometry_covariance_without_bias_reproduces_odometry_and_paper_method_runs(tmp_path: Path) -> None:
+    inp = _write_inputs(tmp_path / "in", 15)
+    odo = pq.read_table(inp["dirs"]["odometry"] / "odometry.parquet").to_pydict()
+    for c in ("cov_xx", "cov_xy", "cov_xyaw", "cov_yy", "cov_yyaw", "cov_yawyaw"):
+        odo[c] = np.zeros(15)
+    write_artifact(odo, inp["dirs"]["odometry"] / "odometry.parquet", "odometry")
+    _run(_ctx(tmp_path / "out", inp["dirs"], n_particles=4, n_basis=36, yaw_bias=False,
+              methods=["fastslam_grid", "rich_slam", "rich_slam_paper"], workers=0, n_map_snapshots=0))
+    for m in ("fastslam_grid", "rich_slam"):  # the odometry's own (zero) covariance: no noise at all
+        t = pq.read_table(tmp_path / "out" / f"trajectory_{m}.parquet")
+        for c in ("x", "y", "yaw"):
+            np.testing.assert_allclose(t[c].to_numpy(), odo[c], atol=1e-9)
+    paper = pq.read_table(tmp_path / "out" / "trajectory_rich_slam_paper.parquet")  # the fitted GMapping noise
+    assert np.abs(paper["x"].to_numpy() - odo["x"]).max() > 1e-4
 
 
 def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
@@ -196,7 +214,8 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
     # anchored at the ground truth (the odometry stage's default): the errors without alignment as well
     odo_xy = inp["run"].odometry
     write_artifact({"scan": np.arange(25, dtype=np.int32), "t_ns": t_ns, "x": odo_xy[:, 0], "y": odo_xy[:, 1],
-                    "z": np.zeros(25), "roll": np.zeros(25), "pitch": np.zeros(25), "yaw": odo_xy[:, 2]},
+                    "z": np.zeros(25), "roll": np.zeros(25), "pitch": np.zeros(25), "yaw": odo_xy[:, 2],
+                    **cov_columns(25)},
                    inp["dirs"]["odometry"] / "odometry.parquet", "odometry", metadata={"anchor": "groundtruth"})
     out2 = tmp_path / "t3_anchored.jsonl"
     assert table3.main([str(tmp_path / "seq_a"), "--methods", "odometry,fastslam_grid", "--seeds", "0",

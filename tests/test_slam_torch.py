@@ -25,7 +25,10 @@ from stages.slam.rbpf import (  # noqa: E402
     RBPF,
     HilbertParticleMaps,
     HilbertWeighting,
+    MapModel,
     MotionNoise,
+    Proposal,
+    YawBias,
     odometry_increments,
 )
 from stages.slam.synthetic import make_run  # noqa: E402
@@ -51,17 +54,24 @@ def corridor() -> dict[str, Any]:
     return {"run": run, "scans": scans, "basis": basis, "u": odometry_increments(run.odometry)}
 
 
-def _filter(corridor: dict[str, Any], backend: str, form: str, **kw: Any) -> dict[str, Any]:
-    """Run one backend over the corridor; log weights before resampling and the final maps."""
+def _filter(corridor: dict[str, Any], backend: str, form: str, new_proposal: bool = False,
+            **kw: Any) -> dict[str, Any]:
+    """Run one backend over the corridor; log weights before resampling and the final maps. ``new_proposal``:
+    the odometry-covariance proposal with the yaw-rate bias state (issue 27) instead of GMapping's."""
     b, w = corridor["basis"], HilbertWeighting(et_variance="taylor")
-    args = (b, N_P, 2.0, 16.0, 0.36, w)
+    rng = np.random.default_rng(0)
+    proposal = None
+    if new_proposal:
+        cov = np.tile(np.diag([0.01, 0.008, 0.003]) ** 2, (N_SCANS, 1, 1))
+        cov[:, 0, 2] = cov[:, 2, 0] = 1e-6
+        proposal = Proposal(MotionNoise(), N_P, rng, cov=cov, dt=np.full(N_SCANS, 0.1), bias=YawBias(0.01, 1e-3))
     maps: Any
     if backend == "numpy":
-        maps = HilbertParticleMaps(*args, form=form)  # type: ignore[arg-type]
-        f: Any = RBPF(maps, corridor["run"].odometry[0], N_P, MotionNoise(), np.random.default_rng(0))
+        maps = HilbertParticleMaps(b, N_P, MapModel(2.0, 16.0, 0.36, w, form=form))  # type: ignore[arg-type]
+        f: Any = RBPF(maps, corridor["run"].odometry[0], N_P, MotionNoise(), rng, proposal=proposal)
     else:
-        maps = TorchHilbertMaps(*args, form=form, **kw)  # type: ignore[arg-type]
-        f = TorchRBPF(maps, corridor["run"].odometry[0], N_P, MotionNoise(), np.random.default_rng(0))
+        maps = TorchHilbertMaps(b, N_P, MapModel(2.0, 16.0, 0.36, w, form=form), **kw)  # type: ignore[arg-type]
+        f = TorchRBPF(maps, corridor["run"].odometry[0], N_P, MotionNoise(), rng, proposal=proposal)
     logw: list[np.ndarray] = []
 
     def record(i: int, filt: Any, best: int) -> None:
@@ -71,6 +81,17 @@ def _filter(corridor: dict[str, Any], backend: str, form: str, **kw: Any) -> dic
     h = f.run(corridor["u"], corridor["scans"], observer=record)
     final = [maps.map_of(k) for k in (0, N_P - 1)]
     return {"history": h, "logw": np.asarray(logw), "maps": final}
+
+
+def test_torch_filter_equals_numpy_filter_with_the_odometry_covariance_and_bias_state(
+        corridor: dict[str, Any]) -> None:
+    a = _filter(corridor, "numpy", "information", new_proposal=True)
+    t = _filter(corridor, "torch", "information", new_proposal=True)
+    ha, ht = a["history"], t["history"]
+    assert sum(ha.resampled) >= 5 and ht.resampled == ha.resampled and ht.best_index == ha.best_index
+    np.testing.assert_allclose(np.asarray(ht.particles), np.asarray(ha.particles), atol=1e-12)
+    np.testing.assert_allclose(ht.yaw_bias, ha.yaw_bias, atol=1e-12)
+    assert np.all(np.isfinite(ha.yaw_bias)) and np.ptp(ha.yaw_bias) > 0
 
 
 @pytest.fixture(scope="module")
@@ -110,10 +131,10 @@ def _float32_error(corridor: dict[str, Any], form: str, backend: str) -> float:
     to the particles' spread (the measure of ``benchmarks/bench_slam.py``)."""
     b, w, scans = corridor["basis"], HilbertWeighting(et_variance="taylor"), corridor["scans"][:40]
     rng = np.random.default_rng(3)
-    ref = HilbertParticleMaps(b, N_P, 2.0, 16.0, 0.36, w, form=form)  # type: ignore[arg-type]
-    low: Any = (HilbertParticleMaps(b, N_P, 2.0, 16.0, 0.36, w, form=form, dtype=np.float32)  # type: ignore[arg-type]
+    ref = HilbertParticleMaps(b, N_P, MapModel(2.0, 16.0, 0.36, w, form=form))  # type: ignore[arg-type]
+    low: Any = (HilbertParticleMaps(b, N_P, MapModel(2.0, 16.0, 0.36, w, form=form, dtype=np.float32))  # type: ignore[arg-type]
                 if backend == "numpy" else
-                TorchHilbertMaps(b, N_P, 2.0, 16.0, 0.36, w, form=form, dtype="float32"))  # type: ignore[arg-type]
+                TorchHilbertMaps(b, N_P, MapModel(2.0, 16.0, 0.36, w, form=form, dtype="float32")))  # type: ignore[arg-type]
     worst = 0.0
     for i, s in enumerate(scans):
         poses = corridor["run"].groundtruth[i] + rng.normal(0, [0.05, 0.05, 0.01], (N_P, 3))
@@ -136,7 +157,7 @@ def test_torch_float32_is_as_accurate_as_numpy_float32(corridor: dict[str, Any],
 def test_resampled_torch_maps_do_not_alias(corridor: dict[str, Any]) -> None:
     b, s = corridor["basis"], corridor["scans"][5]
     for form in FORMS:
-        maps = TorchHilbertMaps(b, 3, 2.0, 16.0, 0.36, HilbertWeighting(), form=form)  # type: ignore[arg-type]
+        maps = TorchHilbertMaps(b, 3, MapModel(2.0, 16.0, 0.36, HilbertWeighting(), form=form))  # type: ignore[arg-type]
         poses = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.5], [0.0, 1.0, 1.0]], dtype=torch.float64)
         maps.weigh_and_update(poses, s)
         maps.select(torch.tensor([1, 1, 0]))

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from pipeline.errors import UserError
 from pipeline.recording import entity_paths_in
 from schemas.io import read_artifact, write_artifact
+from stages.odometry.stage import cov_columns
 from stages.voxel.stage import STAGE, VoxelParams
 from stages.voxel.voxel_map import coord_to_key
 from tests.test_voxel_synthetic import BASE_FROM_LIDAR, distance_to_surfaces, make_context, write_ingest
@@ -105,7 +106,7 @@ def _write_odometry(odo: Path, gt: Any, level: bool = False, t_shift_ns: int = 0
     write_artifact({"scan": np.arange(n, dtype=np.int32), "t_ns": gt.column("t_ns").to_numpy() + t_shift_ns,
                     "x": gt.column("x").to_numpy(), "y": gt.column("y").to_numpy(), "yaw": yaw,
                     "z": zero if level else gt.column("z").to_numpy(), "roll": zero if level else roll,
-                    "pitch": zero if level else pitch}, odo / "odometry.parquet", "odometry")
+                    "pitch": zero if level else pitch, **cov_columns(n)}, odo / "odometry.parquet", "odometry")
 
 
 def _keys(points: Any) -> set[tuple[int, ...]]:

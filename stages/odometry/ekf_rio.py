@@ -99,6 +99,9 @@ class EkfResult:
     sigma: F64 = field(default_factory=lambda: np.zeros((0, 15)))
     #: scans where the covariance was inflated after repeated rejections (or the state re-initialised)
     recovered: npt.NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    #: joint covariance of the pose errors (dp, dtheta) at scan s and at scan s-1, ``(S, 12, 12)``, the current
+    #: pose first (stochastic cloning, :meth:`EkfRio.clone`); zero up to the filter's first scan
+    pose_pair_cov: F64 = field(default_factory=lambda: np.zeros((0, 12, 12)))
     stats: dict[str, Any] = field(default_factory=dict)
 
 
@@ -183,6 +186,25 @@ class EkfRio:
         q = np.r_[np.full(3, cfg.accel_noise_density ** 2), np.full(3, cfg.gyro_noise_density ** 2),
                   np.full(3, cfg.gyro_bias_walk ** 2), np.full(3, cfg.accel_bias_walk ** 2)]
         self._qc = q  # continuous-time noise densities of [v, theta, bg, ba]
+        #: stochastic clone of the error state at the last scan: cross covariance cov(dx_now, dx_clone) and
+        #: the clone's own covariance (Roumeliotis & Burdick 2002)
+        self.C = self.P.copy()
+        self.Pc = self.P.copy()
+
+    def clone(self) -> None:
+        """Clone the error state (at a scan): the next :meth:`pose_pair_cov` is of the increment from here."""
+        self.C = self.P.copy()
+        self.Pc = self.P.copy()
+
+    def pose_pair_cov(self) -> F64:
+        """Joint covariance of the pose errors ``(dp, dtheta)`` now and at the clone, ``(12, 12)``."""
+        i = np.r_[0:3, 6:9]
+        out = np.empty((12, 12))
+        out[:6, :6] = self.P[np.ix_(i, i)]
+        out[:6, 6:] = self.C[np.ix_(i, i)]
+        out[6:, :6] = out[:6, 6:].T
+        out[6:, 6:] = self.Pc[np.ix_(i, i)]
+        return 0.5 * (out + out.T)
 
     def set_noise(self, accel_noise_density: float, gyro_noise_density: float) -> None:
         self._qc[0:3] = accel_noise_density ** 2
@@ -217,6 +239,7 @@ class EkfRio:
         F[6:9, 6:9] = so3_exp(-w * dt)
         F[6:9, 9:12] = -np.eye(3) * dt
         P = F @ self.P @ F.T
+        self.C = F @ self.C  # the clone is static: only the current half of the cross covariance moves
         idx = np.arange(3, 15)
         P[idx, idx] += self._qc * dt
         self.P = 0.5 * (P + P.T)
@@ -235,6 +258,12 @@ class EkfRio:
         IKH = np.eye(15) - K @ H
         self.P = IKH @ self.P @ IKH.T + K @ Rm @ K.T
         self.P = 0.5 * (self.P + self.P.T)
+        # the clone is corrected too (its error is correlated with the measured state's): cov(dx+, dc) =
+        # (I - K H) C, cov(dc+) = Pc - (H C)^T S^-1 (H C); the clone's mean is not needed
+        HC = H @ self.C
+        self.Pc = self.Pc - HC.T @ np.linalg.solve(S, HC)
+        self.Pc = 0.5 * (self.Pc + self.Pc.T)
+        self.C = IKH @ self.C
         self.p += dx[0:3]
         self.v += dx[3:6]
         self.R = self.R @ so3_exp(dx[6:9])
@@ -286,7 +315,8 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
     """
     S = len(scan_t)
     out = EkfResult(np.tile(np.eye(4), (S, 1, 1)), np.zeros((S, 3)), np.zeros((S, 3)), np.zeros((S, 3)),
-                    np.zeros(S, bool), np.zeros(S, bool), np.zeros(S, bool), np.zeros((S, 15)), np.zeros(S, bool))
+                    np.zeros(S, bool), np.zeros(S, bool), np.zeros(S, bool), np.zeros((S, 15)), np.zeros(S, bool),
+                    np.zeros((S, 12, 12)))
     R_ir, t_ir = imu_from_radar[:3, :3], imu_from_radar[:3, 3]
     if S == 0 or len(imu_t) < 2:
         return out
@@ -372,6 +402,7 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
                 R_re = np.array([[c_, -s_, 0.0], [s_, c_, 0.0], [0.0, 0.0, 1.0]])
                 ekf = EkfRio(cfg, R_re, R_re @ (R_ir @ vel[s]))
                 ekf.p = p_last
+                ekf.Pc, ekf.C = ekf.P.copy(), np.zeros((15, 15))  # the clone's error: independent of the new state
                 n_reinit += 1
                 out.recovered[s] = True
             ok = ekf.update_velocity(vel[s], c, rows, w_k, R_ir, t_ir)
@@ -399,9 +430,58 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
         out.gyro_bias[s] = ekf.bg
         out.accel_bias[s] = ekf.ba
         out.sigma[s] = np.sqrt(np.diag(ekf.P))
+        if s > s0:
+            out.pose_pair_cov[s] = ekf.pose_pair_cov()
+        ekf.clone()
         out.initialized[s] = True
     out.T_world_imu[:s0] = out.T_world_imu[s0]
     out.stats = {"start_scan": s0, "velocity_updates": n_upd, "velocity_rejected": n_rej, "zero_rate_updates": n_zaru,
                  "recoveries": n_recover, "reinitialisations": n_reinit, "recovery_t_ns": recover_t,
                  "standstill": still.as_dict() if still is not None else None}
     return out
+
+
+def increment_covariance(T_world_imu: F64, pose_pair_cov: F64, base_from_imu: F64, eps: float = 1e-6) -> F64:
+    """Covariance ``(S, 3, 3)`` of the body-frame SE(2) increment ``(dx, dy, dyaw)`` of the base from scan s-1
+    to scan s (as :func:`stages.slam.rbpf.odometry_increments` forms it from the world <- base poses).
+
+    First order: ``J Sigma J^T`` with ``Sigma`` the joint pose-error covariance of the two scans
+    (``pose_pair_cov``: right perturbations ``R Exp(dtheta)`` and ``p + dp`` of world <- imu) and J by central
+    differences. Row 0 is zero. A rigid SE(2) motion of the whole trajectory (the anchor) leaves it unchanged.
+    """
+    T = np.asarray(T_world_imu, dtype=np.float64)
+    S = len(T)
+    out = np.zeros((S, 3, 3))
+    if S < 2:
+        return out
+    imu_from_base = np.linalg.inv(base_from_imu)
+
+    def inc(Tc: F64, Tp: F64) -> F64:
+        a, b = Tp @ imu_from_base, Tc @ imu_from_base
+        yaw_a, yaw_b = np.arctan2(a[..., 1, 0], a[..., 0, 0]), np.arctan2(b[..., 1, 0], b[..., 0, 0])
+        d = b[..., :2, 3] - a[..., :2, 3]
+        c, s_ = np.cos(yaw_a), np.sin(yaw_a)
+        dyaw = np.angle(np.exp(1j * (yaw_b - yaw_a)))
+        return np.stack([c * d[..., 0] + s_ * d[..., 1], -s_ * d[..., 0] + c * d[..., 1], dyaw], axis=-1)
+
+    def perturb(Tm: F64, k: int, h: float) -> F64:
+        Tq = Tm.copy()
+        if k < 3:
+            Tq[:, k, 3] += h
+        else:
+            w = np.zeros(3)
+            w[k - 3] = h
+            Tq[:, :3, :3] = Tq[:, :3, :3] @ so3_exp(w)
+        return Tq
+
+    cur, prev = T[1:], T[:-1]
+    J = np.zeros((S - 1, 3, 12))
+    for k in range(12):
+        if k < 6:
+            d = inc(perturb(cur, k, eps), prev) - inc(perturb(cur, k, -eps), prev)
+        else:
+            d = inc(cur, perturb(prev, k - 6, eps)) - inc(cur, perturb(prev, k - 6, -eps))
+        d[:, 2] = np.angle(np.exp(1j * d[:, 2]))
+        J[:, :, k] = d / (2 * eps)
+    out[1:] = J @ np.asarray(pose_pair_cov, dtype=np.float64)[1:] @ np.swapaxes(J, 1, 2)
+    return np.asarray(0.5 * (out + np.swapaxes(out, 1, 2)))

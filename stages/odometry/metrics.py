@@ -49,3 +49,44 @@ def drift(t_ns: npt.NDArray[np.int64], est: F64, ref: F64) -> dict[str, Any]:
         "yaw_drift_slope_deg_per_min": round(slope, 3),
         "rmse_yaw_deg": round(float(np.degrees(np.sqrt((yaw_err ** 2).mean()))), 3),
     }
+
+
+def se2_increments(poses: F64) -> F64:
+    """Body-frame increments ``x[i-1]^-1 (+) x[i]`` of a planar trajectory ``(N, 3)``; row 0 is zero."""
+    x = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    u = np.zeros_like(x)
+    if len(x) > 1:
+        dp = x[1:, :2] - x[:-1, :2]
+        c, s = np.cos(x[:-1, 2]), np.sin(x[:-1, 2])
+        u[1:, 0] = c * dp[:, 0] + s * dp[:, 1]
+        u[1:, 1] = -s * dp[:, 0] + c * dp[:, 1]
+        u[1:, 2] = wrap_angle(x[1:, 2] - x[:-1, 2])
+    return u
+
+
+#: the NEES check's tolerance: the mean NEES of a sequence within this factor of its expectation (3)
+NEES_TOLERANCE = 2.0
+
+
+def increment_nees(est: F64, ref: F64, cov: F64, ok: npt.NDArray[np.bool_]) -> dict[str, Any]:
+    """Normalised estimation error squared of the body-frame increments ``e^T Sigma^-1 e`` (e = estimated
+    minus true increment from scan i-1 to i), over the increments whose two scans are ``ok`` and whose
+    covariance is positive definite. Consistent covariances give chi-square(3): mean 3, 95 % of the values
+    below 7.81. Also the per-axis normalised error variance (``e_j^2 / Sigma_jj``, expectation 1)."""
+    e = se2_increments(est) - se2_increments(ref)
+    e[:, 2] = wrap_angle(e[:, 2])
+    use = np.zeros(len(e), bool)
+    use[1:] = ok[1:] & ok[:-1]
+    c = np.asarray(cov, dtype=np.float64)
+    use &= np.all(np.isfinite(c.reshape(len(c), -1)), axis=1)
+    use &= np.linalg.eigvalsh(np.where(np.isfinite(c), c, 0.0))[:, 0] > 0
+    if use.sum() < 2:
+        return {"increments": int(use.sum())}
+    e, c = e[use], c[use]
+    nees = np.einsum("si,si->s", e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
+    axis = e ** 2 / np.diagonal(c, axis1=1, axis2=2)
+    mean = float(nees.mean())
+    return {"increments": int(use.sum()), "mean": round(mean, 4), "median": round(float(np.median(nees)), 4),
+            "share_below_chi2_95": round(float(np.mean(nees < 7.8147)), 4),
+            "axis_mean": [round(float(v), 4) for v in axis.mean(axis=0)],
+            "within_tolerance": bool(3.0 / NEES_TOLERANCE <= mean <= 3.0 * NEES_TOLERANCE)}

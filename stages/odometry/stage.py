@@ -22,12 +22,27 @@ from pydantic import Field
 
 from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams
+from schemas.artifacts import ODOMETRY_COV_COLS, ODOMETRY_COV_IDX
 from schemas.io import read_artifact, write_artifact
 from stages.ingest.geometry import interpolate_poses, roll_pitch_of, yaw_of
-from stages.odometry.ekf_rio import EkfConfig, run_ekf
-from stages.odometry.metrics import drift, se2_compose_anchor
+from stages.odometry.ekf_rio import EkfConfig, increment_covariance, run_ekf
+from stages.odometry.metrics import drift, increment_nees, se2_compose_anchor, se2_increments
 
 POSE_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw")
+#: the increment covariance's columns (body frame of the previous scan: dx, dy, dyaw)
+COV_COLS, _COV_IDX = ODOMETRY_COV_COLS, ODOMETRY_COV_IDX
+
+
+def bag_increment_covariance(u: npt.NDArray[np.float64], std_xy: float, rel_trans: float, std_yaw: float,
+                             rot_per_trans: float) -> npt.NDArray[np.float64]:
+    """The ``bag`` source's increment covariance (its odometry topic carries none we can trust): diagonal,
+    ``(std_xy + rel_trans |t|)^2`` on x and y, ``(std_yaw + rot_per_trans |t|)^2`` on yaw; row 0 zero."""
+    trans = np.hypot(u[:, 0], u[:, 1])
+    out = np.zeros((len(u), 3, 3))
+    out[:, 0, 0] = out[:, 1, 1] = (std_xy + rel_trans * trans) ** 2
+    out[:, 2, 2] = (std_yaw + rot_per_trans * trans) ** 2
+    out[:1] = 0.0
+    return out
 
 
 class OdometryParams(StageParams):
@@ -75,6 +90,13 @@ class OdometryParams(StageParams):
     recover_sigma_accel_bias: float = Field(0.3, gt=0, description="accelerometer bias std after a recovery, m/s^2")
     reject_warn_share: float = Field(0.1, ge=0, le=1, description="warn when more than this share of velocity "
                                                                   "updates is rejected by the gate")
+    increment_cov_scale: float = Field(
+        1.06, gt=0, description="factor on the EKF's increment covariance (the NEES check: chosen on the "
+                               "calibration runs calib_demo_drift and calib_hallway_loop_drift only)")
+    bag_std_xy: float = Field(0.005, gt=0, description="source=bag: increment std on x and y per scan, m")
+    bag_rel_trans: float = Field(0.05, ge=0, description="source=bag: increment std on x and y per metre, m/m")
+    bag_std_yaw: float = Field(0.001, gt=0, description="source=bag: increment yaw std per scan, rad")
+    bag_rot_per_trans: float = Field(0.03, ge=0, description="source=bag: increment yaw std per metre, rad/m")
 
 
 class OdometryStage(Stage):
@@ -82,7 +104,7 @@ class OdometryStage(Stage):
     description = "radar-inertial odometry (EKF-RIO) at radar scan times"
     inputs = ("ingest", "filter")
     Params = OdometryParams
-    version = "2"
+    version = "3"
     outputs = ("odometry.parquet",)
 
     def input_stages(self, params: StageParams) -> tuple[str, ...]:
@@ -96,8 +118,11 @@ class OdometryStage(Stage):
         base_from_radar = np.asarray(calib["base_from_radar"], dtype=np.float64)
         if p.source == "bag":
             scans, scan_t, T_wb, valid = self._from_bag(ctx)
+            u = se2_increments(np.stack([T_wb[:, 0, 3], T_wb[:, 1, 3], yaw_of(T_wb[:, :3, :3])], axis=1))
+            inc_cov = bag_increment_covariance(u, p.bag_std_xy, p.bag_rel_trans, p.bag_std_yaw, p.bag_rot_per_trans)
         else:
-            scans, scan_t, T_wb, valid = self._from_ekf(ctx, base_from_imu, base_from_radar)
+            scans, scan_t, T_wb, valid, inc_cov = self._from_ekf(ctx, base_from_imu, base_from_radar)
+            inc_cov = inc_cov * p.increment_cov_scale
         x, y, yaw = T_wb[:, 0, 3], T_wb[:, 1, 3], yaw_of(T_wb[:, :3, :3])
         z, roll, pitch = T_wb[:, 2, 3].copy(), *roll_pitch_of(T_wb[:, :3, :3])
 
@@ -123,8 +148,9 @@ class OdometryStage(Stage):
                     ctx.console.print("[dim]odometry: the log has no ground truth; anchored at the origin[/]")
                 x, y, yaw = se2_compose_anchor(x, y, yaw, first, 0.0, 0.0, 0.0)
                 z = z - z[first]
+        cols = {c: inc_cov[:, i, j] for c, (i, j) in zip(COV_COLS, _COV_IDX, strict=True)}
         write_artifact({"scan": scans.astype(np.int32), "t_ns": scan_t, "x": x, "y": y, "z": z,
-                        "roll": roll, "pitch": pitch, "yaw": yaw, "valid": valid},
+                        "roll": roll, "pitch": pitch, "yaw": yaw, **cols, "valid": valid},
                        ctx.output("odometry.parquet"), "odometry", metadata={"anchor": anchored, "source": p.source})
         ctx.stats["anchor"] = anchored
         ctx.stats["source"] = p.source
@@ -134,6 +160,7 @@ class OdometryStage(Stage):
             ref = np.stack([T_gt[:, 0, 3], T_gt[:, 1, 3], yaw_of(T_gt[:, :3, :3])], axis=1)
             est = np.stack([x, y, yaw], axis=1)
             ctx.stats["drift"] = drift(scan_t[ok], est[ok], ref[ok])
+            ctx.stats["increment_nees"] = increment_nees(est, ref, inc_cov, ok)
             d = ctx.stats["drift"]
             ctx.console.print(f"[dim]odometry: drift {d.get('drift_pct_of_distance')} % of "
                               f"{d.get('path_length_m')} m, yaw {d.get('yaw_drift_deg_per_min')} deg/min[/]")
@@ -141,7 +168,9 @@ class OdometryStage(Stage):
 
     def _from_ekf(self, ctx: StageContext, base_from_imu: npt.NDArray[np.float64],
                   base_from_radar: npt.NDArray[np.float64]
-                  ) -> tuple[npt.NDArray[Any], npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.bool_]]:
+                  ) -> tuple[npt.NDArray[Any], npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.bool_],
+                             npt.NDArray[np.float64]]:
+        """Poses world <- base and the increment covariance per scan (:func:`increment_covariance`)."""
         p: OdometryParams = ctx.params
         ego = read_artifact(ctx.input("filter", "ego_velocity.parquet"), "ego_velocity")
         imu = read_artifact(ctx.input("ingest", "imu.parquet"), "imu")
@@ -193,7 +222,8 @@ class OdometryStage(Stage):
         ctx.stats["gyro_bias_final"] = [round(float(b), 6) for b in res.gyro_bias[-1]]
         ctx.stats["accel_bias_final"] = [round(float(b), 5) for b in res.accel_bias[-1]]
         T_wb = res.T_world_imu @ np.linalg.inv(base_from_imu)
-        return scans, scan_t, T_wb, res.initialized
+        return scans, scan_t, T_wb, res.initialized, increment_covariance(res.T_world_imu, res.pose_pair_cov,
+                                                                          base_from_imu)
 
     @staticmethod
     def _report_ekf(ctx: StageContext, st: dict[str, Any], scan_t: npt.NDArray[np.int64]) -> None:
@@ -241,3 +271,12 @@ class OdometryStage(Stage):
 
 
 STAGE = OdometryStage()
+
+
+def cov_columns(n: int, std_xy: float = 0.01, std_yaw: float = 0.002) -> dict[str, npt.NDArray[np.float64]]:
+    """The ``cov_*`` columns of an odometry artifact with a diagonal increment covariance (fixtures, tools)."""
+    cov = np.zeros((n, 3, 3))
+    cov[:, 0, 0] = cov[:, 1, 1] = std_xy ** 2
+    cov[:, 2, 2] = std_yaw ** 2
+    cov[:1] = 0.0
+    return {c: cov[:, i, j] for c, (i, j) in zip(COV_COLS, _COV_IDX, strict=True)}

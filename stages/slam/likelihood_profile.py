@@ -40,7 +40,14 @@ from stages.slam.beam_sampling import BeamSamples, sample_beams, to_world
 from stages.slam.grid_map import GridParticleMaps, likelihood_field_log_likelihood, make_grid_spec
 from stages.slam.methods import SlamConfig, domain_from_trajectory
 from stages.slam.pose_refinement import PoseRefinement, refine
-from stages.slam.rbpf import HilbertParticleMaps, HilbertWeighting, compose, hilbert_log_likelihood, wrap_angle
+from stages.slam.rbpf import (
+    HilbertParticleMaps,
+    HilbertWeighting,
+    MapModel,
+    compose,
+    hilbert_log_likelihood,
+    wrap_angle,
+)
 
 F64 = npt.NDArray[np.floating[Any]]
 #: body-frame offsets profiled: metres forward / lateral, degrees of yaw
@@ -88,8 +95,8 @@ def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: Sl
     half, centre = domain_from_trajectory(gt[:, :2], padding)
     basis = hm.make_basis(half, centre, cfg.n_basis, cfg.basis_kind)
     w = cfg.weighting("rich_slam")
-    hil = HilbertParticleMaps(basis, 1, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, w,
-                              form="covariance")
+    hil = HilbertParticleMaps(basis, 1, MapModel(cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, w,
+                                                 form="covariance"))
     grid = GridParticleMaps(make_grid_spec(centre, half, cfg.grid_resolution), 1, cfg.grid)
     models: dict[str, tuple[HilbertWeighting | None, Sequence[BeamSamples], HilbertParticleMaps | None]] = {
         "hilbert_gp (variance, ET)": (w, scans, hil),
@@ -97,8 +104,8 @@ def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: Sl
         "fastslam_grid": (None, scans, None)}
     for name, (wx, sx, s2e) in (extra or {}).items():
         mx: HilbertParticleMaps | None = hil if sx is scans and s2e is None else HilbertParticleMaps(
-            basis, 1, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, wx, form="covariance",
-            endpoint_noise_variance=s2e)
+            basis, 1, MapModel(cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance, wx, form="covariance",
+                               endpoint_noise_variance=s2e))
         models[name] = (wx, sx, mx)
     own = {id(m): (m, sx) for _, sx, m in models.values() if m is not None}
     sums: dict[tuple[str, str], F64] = {}
@@ -141,8 +148,7 @@ def refinement_bias(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], 
     """
     half, centre = domain_from_trajectory(gt[:, :2], padding)
     basis = hm.make_basis(half, centre, cfg.n_basis, cfg.basis_kind)
-    hil = HilbertParticleMaps(basis, 1, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
-                              cfg.weighting("rich_slam"), form="covariance")
+    hil = HilbertParticleMaps(basis, 1, cfg.map_model("rich_slam", "covariance"))
     starts = {"true pose": (0.0, 0.0, 0.0), "lateral +-0.2 m": (0.0, 0.2, 0.0), "yaw +-3 deg": (0.0, 0.0, 3.0)}
     wide = np.array([1.0, 1.0, 0.09])
     errs: dict[tuple[str, str], list[F64]] = {}

@@ -26,16 +26,22 @@ from stages.slam.rbpf import (
     FilterHistory,
     HilbertParticleMaps,
     HilbertWeighting,
+    MapModel,
     MotionNoise,
+    Proposal,
     Resampling,
+    YawBias,
     odometry_increments,
 )
 
 Method = Literal["odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only",
-                 "rich_slam_refined"]
+                 "rich_slam_refined", "rich_slam_paper"]
 METHODS: tuple[Method, ...] = ("odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only",
-                               "rich_slam_refined")
-HILBERT_METHODS = ("rich_slam", "rich_slam_no_et", "rich_slam_mean_only", "rich_slam_refined")
+                               "rich_slam_refined", "rich_slam_paper")
+HILBERT_METHODS = ("rich_slam", "rich_slam_no_et", "rich_slam_mean_only", "rich_slam_refined", "rich_slam_paper")
+#: the paper's configuration (Sec. IV): the fixed GMapping-form proposal, no bias state, one global map
+PAPER_METHODS = ("rich_slam_paper",)
+ProposalKind = Literal["odometry_covariance", "gmapping"]
 #: methods whose particles are refined against their own maps before weighting (pose_refinement.py)
 REFINED_METHODS = ("rich_slam_refined",)
 F64 = npt.NDArray[np.floating[Any]]
@@ -57,6 +63,12 @@ class SlamConfig:
     et_variance: Literal["exact", "taylor"] = "taylor"
     likelihood_exponent: float = 1.0
     noise: MotionNoise = field(default_factory=MotionNoise)
+    #: the filters' proposal: the odometry's own increment covariance (needs :class:`OdometryMotion`) or
+    #: GMapping's fitted form (``noise``); ``rich_slam_paper`` always takes ``gmapping``. The pure default is
+    #: the fitted form; the slam stage's default is ``odometry_covariance``.
+    proposal: ProposalKind = "gmapping"
+    #: each particle's yaw-rate bias state (None: none); ``rich_slam_paper`` never has one
+    yaw_bias: YawBias | None = None
     resampling: Resampling = "systematic"
     resample_threshold: float = 0.5
     map_update: Literal["kalman", "laplace"] = "kalman"
@@ -79,6 +91,12 @@ class SlamConfig:
     #: sigma_n^2 of the endpoints' +1 labels in the map update (None: ``noise_variance`` for all, eq. 15)
     endpoint_noise_variance: float | None = None
 
+    def map_model(self, method: str, form: Literal["information", "covariance"] = "information") -> MapModel:
+        """The particle maps' parameter object of a Hilbert method (every backend takes it)."""
+        return MapModel(self.lengthscale_m, self.signal_variance, self.noise_variance, self.weighting(method),
+                        update=self.map_update, dtype=np.dtype(self.dtype), laplace_iterations=self.laplace_iterations,
+                        form=form, endpoint_noise_variance=self.endpoint_noise_variance)
+
     def weighting(self, method: str) -> HilbertWeighting:
         return HilbertWeighting(
             use_variance=method != "rich_slam_mean_only",
@@ -89,6 +107,28 @@ class SlamConfig:
             exponent=self.likelihood_exponent,
             free_weight=self.free_weight,
         )
+
+
+@dataclass(frozen=True)
+class OdometryMotion:
+    """What the proposal takes from the odometry besides its poses: per-pose increment covariance
+    ``cov (T, 3, 3)`` (body frame, into pose i; row 0 unused) and the intervals ``dt (T,)`` in seconds."""
+
+    cov: F64
+    dt: F64
+
+
+def make_proposal(method: str, cfg: SlamConfig, motion: OdometryMotion | None, rng: np.random.Generator
+                  ) -> Proposal:
+    """The proposal of a filter method (``rich_slam_paper``: the fixed GMapping form, no bias state)."""
+    paper = method in PAPER_METHODS
+    kind = "gmapping" if paper else cfg.proposal
+    bias = None if paper else cfg.yaw_bias
+    if (kind == "odometry_covariance" or bias is not None) and motion is None:
+        raise ValueError(f"{method}: proposal = {kind}{' with the yaw-rate bias state' if bias else ''} needs the "
+                         f"odometry's increment covariance and scan intervals (OdometryMotion)")
+    return Proposal(cfg.noise, cfg.n_particles, rng, cov=motion.cov if kind == "odometry_covariance" and motion
+                    else None, dt=None if motion is None else motion.dt, bias=bias)
 
 
 @dataclass
@@ -105,6 +145,7 @@ class MethodResult:
     cov: F64 | None = None
     form: str = ""  # map form of the Hilbert methods
     device: str = "cpu"  # where the Hilbert methods' filter ran (``cpu`` or ``cuda``)
+    yaw_bias: F64 | None = None  # (T,) weighted mean of the particles' yaw-rate bias (bias state only)
 
 
 def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]:
@@ -149,10 +190,7 @@ def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_pa
     """The particle maps of a Hilbert method, in ``workers`` processes when ``workers > 0``."""
     factory: Callable[..., HilbertParticleMaps | ParallelHilbertMaps] = (
         partial(ParallelHilbertMaps, workers=cfg.workers) if cfg.workers > 0 else HilbertParticleMaps)
-    return factory(basis, n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
-                   cfg.weighting(method), update=cfg.map_update, dtype=np.dtype(cfg.dtype),
-                   laplace_iterations=cfg.laplace_iterations, form=form,
-                   endpoint_noise_variance=cfg.endpoint_noise_variance)
+    return factory(basis, n_particles, cfg.map_model(method, form))
 
 
 Observer = Callable[[int, RBPF, int], None]
@@ -167,8 +205,10 @@ def run_method(
     seed: int,
     observer: Observer | None = None,
     on_step: Callable[[], None] | None = None,
+    motion: OdometryMotion | None = None,
 ) -> MethodResult:
-    """Run one method over the scans; ``odometry (T, 3)`` are world <- base poses at the scan times."""
+    """Run one method over the scans; ``odometry (T, 3)`` are world <- base poses at the scan times, ``motion``
+    their increment covariance and intervals (needed by ``proposal = odometry_covariance`` and the bias state)."""
     t0 = time.perf_counter()
     odometry = np.asarray(odometry, dtype=np.float64).reshape(-1, 3)
     if method == "odometry":
@@ -177,6 +217,9 @@ def run_method(
                 on_step()
         return MethodResult(method, odometry.copy(), np.ones(len(odometry)), time.perf_counter() - t0)
     rng = np.random.default_rng(seed)
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; one of {', '.join(METHODS)}")
+    proposal = make_proposal(method, cfg, motion, rng)
     form: Literal["information", "covariance"] = "information"
     maps: GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps | None = None
     if method == "fastslam_grid":
@@ -199,12 +242,12 @@ def run_method(
     device = "cpu"
     if maps is None:
         device = resolve_device(cfg.backend, cfg.device)[0]
-        h = _run_torch(cfg, basis, method, form, device, odometry, scans, rng, keep_best, on_step)
+        h = _run_torch(cfg, basis, method, form, device, odometry, scans, rng, keep_best, on_step, proposal)
     else:
         try:
             refinement = cfg.refinement if method in REFINED_METHODS else None
             f = RBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold,
-                     refinement=refinement, basis=basis, exponent=cfg.likelihood_exponent)
+                     refinement=refinement, basis=basis, exponent=cfg.likelihood_exponent, proposal=proposal)
             h = f.run(odometry_increments(odometry), scans, observer=keep_best, on_step=on_step)
         finally:
             if isinstance(maps, ParallelHilbertMaps):
@@ -214,12 +257,13 @@ def run_method(
         method, poses, np.asarray(h.n_eff), time.perf_counter() - t0, int(np.sum(h.resampled)),
         np.asarray(h.particles), best_map.get("theta"), best_map.get("cov"),
         form if method in HILBERT_METHODS else "", device,
+        np.asarray(h.yaw_bias) if proposal.bias is not None else None,
     )
 
 
 def _run_torch(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, form: Literal["information", "covariance"],
                device: str, odometry: F64, scans: Sequence[BeamSamples], rng: np.random.Generator,
-               observer: Observer, on_step: Callable[[], None] | None) -> FilterHistory:
+               observer: Observer, on_step: Callable[[], None] | None, proposal: Proposal) -> FilterHistory:
     """The Hilbert method's filter on the torch backend (imported only here: torch is optional)."""
     from stages.slam.torch_filter import TorchRBPF, cpu_threads
     from stages.slam.torch_maps import TorchHilbertMaps
@@ -230,9 +274,9 @@ def _run_torch(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, form: Liter
         raise ValueError(f"{method} (pose refinement) runs on the numpy backend only; set slam.backend = numpy")
     if cfg.endpoint_noise_variance is not None:
         raise ValueError("endpoint_noise_variance runs on the numpy backend only; set slam.backend = numpy")
-    maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.lengthscale_m, cfg.signal_variance, cfg.noise_variance,
-                            cfg.weighting(method), dtype=cfg.dtype, form=form, device=device)
-    f = TorchRBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold)
+    maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.map_model(method, form), device=device)
+    f = TorchRBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold,
+                  proposal=proposal)
     with cpu_threads(cfg.torch_threads if device == "cpu" else 0):
         return f.run(odometry_increments(odometry), scans, observer=observer,  # type: ignore[arg-type]
                      on_step=on_step)

@@ -13,10 +13,10 @@ from __future__ import annotations
 import itertools
 import multiprocessing as mp
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
 from multiprocessing.shared_memory import SharedMemory
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -24,7 +24,7 @@ import numpy.typing as npt
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
 from stages.slam.particle_linalg import StackedCovariance, StackedInformation, select_rows
-from stages.slam.rbpf import HilbertParticleMaps, HilbertWeighting
+from stages.slam.rbpf import HilbertParticleMaps, MapModel
 
 F64 = npt.NDArray[np.floating[Any]]
 _THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -39,14 +39,7 @@ class _Spec:
     lo: int
     hi: int
     basis: hm.HilbertBasis
-    lengthscale: float
-    signal_variance: float
-    noise_variance: float
-    weighting: HilbertWeighting
-    update: str
-    laplace_iterations: int
-    form: str
-    endpoint_noise_variance: float | None
+    model: MapModel
 
 
 def _attach(name: str, shape: tuple[int, ...], dtype: str) -> tuple[SharedMemory, npt.NDArray[Any]]:
@@ -60,13 +53,7 @@ def _worker_main(conn: Connection, spec: _Spec) -> None:
     shapes = [(Np, M), (Np, M, M), (Np, M)]  # theta, info or cov, eta
     blocks = [_attach(name, shape, spec.dtype) for name, shape in zip(spec.names, shapes, strict=False)]
     arrays = tuple(b[1][spec.lo : spec.hi] for b in blocks)
-    maps = HilbertParticleMaps(
-        spec.basis, spec.hi - spec.lo, spec.lengthscale, spec.signal_variance, spec.noise_variance, spec.weighting,
-        update=spec.update,  # type: ignore[arg-type]
-        dtype=spec.dtype, laplace_iterations=spec.laplace_iterations,
-        form=spec.form,  # type: ignore[arg-type]
-        arrays=arrays, endpoint_noise_variance=spec.endpoint_noise_variance,
-    )
+    maps = HilbertParticleMaps(spec.basis, spec.hi - spec.lo, replace(spec.model, dtype=spec.dtype), arrays=arrays)
     try:
         while True:
             msg = conn.recv()
@@ -95,17 +82,11 @@ class ParallelHilbertMaps:
         self,
         basis: hm.HilbertBasis,
         n_particles: int,
-        lengthscale: float,
-        signal_variance: float,
-        noise_variance: float,
-        weighting: HilbertWeighting,
-        update: Literal["kalman", "laplace"] = "kalman",
-        dtype: npt.DTypeLike = np.float64,
-        laplace_iterations: int = 20,
+        model: MapModel,
         workers: int = 2,
-        form: Literal["information", "covariance"] = "information",
-        endpoint_noise_variance: float | None = None,
     ) -> None:
+        self.model = model
+        lengthscale, signal_variance, dtype, form = model.lengthscale, model.signal_variance, model.dtype, model.form
         self.basis = basis
         self.dtype = np.dtype(dtype)
         self.form = form
@@ -143,8 +124,7 @@ class ParallelHilbertMaps:
                 os.environ[v] = "1"
             for lo, hi in itertools.pairwise(bounds):
                 spec = _Spec(tuple(b.name for b in self._shm), n_particles, M, self.dtype.name, int(lo), int(hi),
-                             basis, lengthscale, signal_variance, noise_variance, weighting, update,
-                             laplace_iterations, form, endpoint_noise_variance)
+                             basis, model)
                 parent, child = ctx.Pipe()
                 proc = ctx.Process(target=_worker_main, args=(child, spec), daemon=True)
                 proc.start()

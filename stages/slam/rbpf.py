@@ -74,6 +74,94 @@ def propagate(poses: F64, u: npt.ArrayLike, noise: MotionNoise, rng: np.random.G
     return compose(poses, u + v)
 
 
+@dataclass(frozen=True)
+class YawBias:
+    """Each particle's yaw-rate bias b (rad/s): what is left of the gyro z bias in the odometry's heading.
+
+    Prior ``b_0 ~ N(0, sigma0^2)``; a random walk ``b_k = b_{k-1} + walk sqrt(dt) n``. The motion applied to a
+    particle is the odometry increment with its yaw corrected by its own bias, ``dyaw - b dt``, so a particle
+    with the right bias keeps the right heading and the weights gather evidence for it scan after scan.
+    """
+
+    #: prior std, rad/s (the EKF's gyro-bias prior: a MEMS turn-on bias left after the start)
+    sigma0: float = 0.005
+    #: random-walk density, rad/s/sqrt(s): 3DM-GX5 in-run bias instability 8 deg/h (3.9e-5 rad/s) over a
+    #: 100 s correlation time, 3.9e-5 / sqrt(100)
+    walk: float = 3.9e-6
+
+
+class Proposal:
+    """The proposal q of eq. 21 for every particle: the odometry increment plus noise, either GMapping's
+    fitted form (:class:`MotionNoise`, ``cov`` None) or the odometry's own increment covariance ``cov[i]``
+    (``(T, 3, 3)``, body frame), and optionally each particle's yaw-rate bias (:class:`YawBias`, needs the
+    scan intervals ``dt``). Draws come from ``rng`` in a fixed order, so that the numpy and torch filters
+    draw the same; with ``cov`` and ``bias`` None they are :func:`propagate`'s.
+    """
+
+    def __init__(self, noise: MotionNoise, n_particles: int, rng: np.random.Generator, cov: F64 | None = None,
+                 dt: F64 | None = None, bias: YawBias | None = None) -> None:
+        if bias is not None and dt is None:
+            raise ValueError("the yaw-rate bias state needs the scan intervals dt")
+        self.noise, self.rng, self.model = noise, rng, bias
+        self.dt = None if dt is None else np.asarray(dt, dtype=np.float64)
+        self.chol: F64 | None = None
+        if cov is not None:
+            c = np.asarray(cov, dtype=np.float64).reshape(-1, 3, 3)
+            w, V = np.linalg.eigh(0.5 * (c + np.swapaxes(c, 1, 2)))
+            self.chol = V * np.sqrt(np.maximum(w, 0.0))[:, None, :]  # L L^T = cov, also when singular
+        self.bias: F64 | None = None if bias is None else rng.normal(0.0, bias.sigma0, n_particles)
+        self._i = 0
+
+    def _step(self) -> tuple[int, float]:
+        self._i += 1
+        return self._i, 0.0 if self.dt is None else float(self.dt[min(self._i, len(self.dt) - 1)])
+
+    def _walk(self, dt: float) -> None:
+        if self.bias is not None and self.model is not None and self.model.walk > 0:
+            self.bias = self.bias + self.model.walk * np.sqrt(max(dt, 0.0)) * self.rng.standard_normal(len(self.bias))
+
+    def corrected(self, u: npt.ArrayLike, n: int, dt: float) -> F64:
+        """``(n, 3)``: the increment with each particle's bias taken off its yaw."""
+        d = np.tile(np.asarray(u, dtype=np.float64).reshape(1, 3), (n, 1))
+        if self.bias is not None:
+            d[:, 2] -= self.bias * dt
+        return d
+
+    def draw(self, u: npt.ArrayLike, n: int) -> F64:
+        """The next step's increments ``(n, 3)`` (bias-corrected, with noise), to compose onto the poses."""
+        i, dt = self._step()
+        self._walk(dt)
+        u = np.asarray(u, dtype=np.float64).reshape(3)
+        if self.chol is None:
+            s_xy, s_yaw = self.noise.std(u)
+            v = self.rng.standard_normal((n, 3)) * np.array([s_xy, s_xy, s_yaw])
+        else:
+            v = self.rng.standard_normal((n, 3)) @ self.chol[min(i, len(self.chol) - 1)].T
+        return self.corrected(u, n, dt) + v
+
+    def prior(self, u: npt.ArrayLike, n: int) -> tuple[F64, F64]:
+        """The next step's bias-corrected increments ``(n, 3)`` and the diagonal of their variance ``(3,)``
+        (for the Laplace proposal of :mod:`pose_refinement`, which takes the prior as diagonal)."""
+        i, dt = self._step()
+        self._walk(dt)
+        if self.chol is None:
+            s_xy, s_yaw = self.noise.std(u)
+            var = np.array([s_xy, s_xy, s_yaw]) ** 2
+        else:
+            L = self.chol[min(i, len(self.chol) - 1)]
+            var = np.sum(L * L, axis=1)
+        return self.corrected(u, n, dt), np.maximum(var, 1e-12)
+
+    def select(self, indices: npt.NDArray[np.int64]) -> None:
+        """Survivors after resampling carry their biases."""
+        if self.bias is not None:
+            self.bias = self.bias[np.asarray(indices)]
+
+    def bias_mean(self, w: F64) -> float:
+        """The weighted mean bias (nan without the bias state)."""
+        return float("nan") if self.bias is None else float(np.dot(w, self.bias))
+
+
 # -- weights and resampling ------------------------------------------------------------------------------
 
 
@@ -145,6 +233,24 @@ class HilbertWeighting:
     exponent: float = 1.0
     #: weight of the free samples' log terms against the endpoints' (1 = the paper, eq. 23)
     free_weight: float = 1.0
+
+
+@dataclass(frozen=True)
+class MapModel:
+    """The Hilbert-GP particle maps' model and numerics: one parameter object for every backend
+    (:class:`HilbertParticleMaps`, ``parallel.ParallelHilbertMaps``, ``torch_maps.TorchHilbertMaps``)."""
+
+    #: SE length scale l (m) and signal variance sigma_f^2 of the prior (eq. 9), label noise sigma_n^2 (eq. 15)
+    lengthscale: float
+    signal_variance: float
+    noise_variance: float
+    weighting: HilbertWeighting = field(default_factory=HilbertWeighting)
+    update: Literal["kalman", "laplace"] = "kalman"
+    dtype: npt.DTypeLike = np.float64
+    laplace_iterations: int = 20
+    form: Literal["information", "covariance"] = "information"
+    #: sigma_n^2 of the +1 samples (None: ``noise_variance`` for all, eq. 15)
+    endpoint_noise_variance: float | None = None
 
 
 class CovarianceMetric:
@@ -353,24 +459,15 @@ class HilbertParticleMaps:
     computed in one BLAS call per particle, so the following ``update`` (same poses) reuses them.
     """
 
-    def __init__(
-        self,
-        basis: hm.HilbertBasis,
-        n_particles: int,
-        lengthscale: float,
-        signal_variance: float,
-        noise_variance: float,
-        weighting: HilbertWeighting,
-        update: Literal["kalman", "laplace"] = "kalman",
-        dtype: npt.DTypeLike = np.float64,
-        laplace_iterations: int = 20,
-        form: Literal["information", "covariance"] = "information",
-        arrays: tuple[F64, ...] | None = None,
-        endpoint_noise_variance: float | None = None,
-    ) -> None:
+    def __init__(self, basis: hm.HilbertBasis, n_particles: int, model: MapModel,
+                 arrays: tuple[F64, ...] | None = None) -> None:
         """``arrays``: existing stacks to work on in place: ``(theta, info, eta)`` (information form) or
-        ``(theta, cov)`` (covariance form, lower triangles). ``endpoint_noise_variance``: sigma_n^2 of the
-        +1 samples (the free samples keep ``noise_variance``); None: one value for both, as in eq. 15."""
+        ``(theta, cov)`` (covariance form, lower triangles). ``model.endpoint_noise_variance``: sigma_n^2 of
+        the +1 samples (the free samples keep ``noise_variance``); None: one value for both, as in eq. 15."""
+        self.model = model
+        lengthscale, signal_variance, noise_variance = model.lengthscale, model.signal_variance, model.noise_variance
+        weighting, update, dtype, form = model.weighting, model.update, model.dtype, model.form
+        laplace_iterations, endpoint_noise_variance = model.laplace_iterations, model.endpoint_noise_variance
         self.basis = basis
         self.noise_variance = noise_variance
         self.endpoint_noise_variance = endpoint_noise_variance
@@ -628,6 +725,8 @@ class FilterHistory:
     resampled: list[bool] = field(default_factory=list)
     particles: list[F64] = field(default_factory=list)
     parents: list[npt.NDArray[np.int64]] = field(default_factory=list)
+    #: weighted mean of the particles' yaw-rate bias per scan (nan without the bias state)
+    yaw_bias: list[float] = field(default_factory=list)
 
     def best_trajectory(self) -> F64:
         """Algorithm 1 line 9: the largest-weight particle's pose at every step."""
@@ -661,9 +760,11 @@ class RBPF:
         refinement: PoseRefinement | None = None,
         basis: hm.HilbertBasis | None = None,
         exponent: float = 1.0,
+        proposal: Proposal | None = None,
     ) -> None:
         """``refinement`` (with the maps' ``basis``; Hilbert maps only): the Laplace proposal of
-        :mod:`pose_refinement` instead of eq. 21's; ``exponent`` is the scan likelihood's, as in the weights."""
+        :mod:`pose_refinement` instead of eq. 21's; ``exponent`` is the scan likelihood's, as in the weights.
+        ``proposal``: the motion noise and bias state (default: GMapping's form with ``noise``, no bias)."""
         if refinement is not None and refinement.enabled and (basis is None or not hasattr(maps, "theta")):
             raise ValueError("pose refinement needs Hilbert-GP particle maps and their basis")
         self.refinement = refinement if refinement is not None and refinement.enabled else None
@@ -674,6 +775,7 @@ class RBPF:
         self.logw: F64 = np.full(n_particles, -np.log(n_particles))
         self.noise = noise
         self.rng = rng
+        self.proposal = proposal if proposal is not None else Proposal(noise, n_particles, rng)
         self.resampler = RESAMPLERS[resampling]
         self.resample_threshold = resample_threshold
         self.history = FilterHistory()
@@ -698,7 +800,7 @@ class RBPF:
         if not first and self.refinement is not None:
             self.poses, correction = self._refined_proposal(u, samples)
         elif not first:
-            self.poses = propagate(self.poses, u, self.noise, self.rng)
+            self.poses = compose(self.poses, self.proposal.draw(u, self.n_particles))
         # eq. 22 against the prior maps, then eq. 15 (the update does not depend on the weights)
         self.logw = self.logw + weigh_and_update(self.maps, self.poses, samples) + correction
         w = self.weights()
@@ -711,6 +813,7 @@ class RBPF:
         self.history.n_eff.append(n_eff)
         self.history.particles.append(self.poses.copy())
         self.history.parents.append(self._parents)
+        self.history.yaw_bias.append(self.proposal.bias_mean(w))
         if observer is not None:
             observer(self, best)
         resampled = n_eff < self.resample_threshold * self.n_particles
@@ -719,6 +822,7 @@ class RBPF:
             idx = self.resampler(w, self.rng)
             self.poses = self.poses[idx]
             self.maps.select(idx)
+            self.proposal.select(idx)
             self.logw = np.full(self.n_particles, -np.log(self.n_particles))
             self._parents = idx  # particle k of the next step continues particle idx[k] of this step
         self.history.resampled.append(resampled)
@@ -732,9 +836,8 @@ class RBPF:
         solved, one scan behind the map (solving the current one would cost a second factorisation).
         """
         assert self.refinement is not None and self.basis is not None
-        x_pred = compose(self.poses, u)
-        s_xy, s_yaw = self.noise.std(u)
-        var = np.maximum(np.array([s_xy, s_xy, s_yaw]) ** 2, 1e-12)
+        d, var = self.proposal.prior(u, self.n_particles)
+        x_pred = compose(self.poses, d)
         theta = np.asarray(self.maps.theta)  # type: ignore[attr-defined]  # Hilbert maps (checked in __init__)
         mode, A = refine(self.basis, theta, x_pred, var, samples, self.refinement, self.exponent)
         x, log_q = sample_proposal(mode, A, self.refinement.covariance_scale, self.rng)

@@ -23,6 +23,7 @@ from pydantic import Field, model_validator
 
 from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams
+from schemas.artifacts import ODOMETRY_COV_COLS, ODOMETRY_COV_IDX
 from schemas.io import read_artifact, write_artifact
 from stages.slam import hilbert_map as hm
 from stages.slam.backend import resolve_device
@@ -34,12 +35,13 @@ from stages.slam.methods import (
     REFINED_METHODS,
     Method,
     MethodResult,
+    OdometryMotion,
     SlamConfig,
     domain_from_trajectory,
     run_method,
 )
 from stages.slam.pose_refinement import PoseRefinement
-from stages.slam.rbpf import MotionNoise
+from stages.slam.rbpf import MotionNoise, YawBias
 
 F64 = npt.NDArray[np.floating[Any]]
 
@@ -124,6 +126,15 @@ class SlamParams(StageParams):
                                         "(rad/m; GMapping's str)")
     motion_trans_per_rot: float = Field(0.06, ge=0, description="extra xy std per radian of odometry rotation "
                                         "(m/rad; GMapping's srt)")
+    proposal: Literal["odometry_covariance", "gmapping"] = Field(
+        "odometry_covariance", description="the filters' proposal noise: the odometry's own per-scan increment "
+        "covariance (odometry.parquet cov_*) or GMapping's fitted form (motion_*); rich_slam_paper: always gmapping")
+    yaw_bias: bool = Field(True, description="each particle carries a yaw-rate bias that corrects its odometry "
+                           "heading increment (not rich_slam_paper)")
+    yaw_bias_sigma0: float = Field(0.005, gt=0, description="yaw-rate bias prior std, rad/s (the odometry's gyro "
+                                   "bias prior, odometry.sigma_gyro_bias0)")
+    yaw_bias_walk: float = Field(3.9e-6, ge=0, description="yaw-rate bias random walk, rad/s/sqrt(s) (3DM-GX5 "
+                                 "in-run bias instability 8 deg/h over a 100 s correlation time)")
     resampling: Literal["systematic", "stratified", "multinomial"] = Field(
         "systematic", description="resampler (systematic = low variance)")
     resample_threshold: float = Field(0.5, gt=0, le=1, description="resample when N_eff < this * N_p (eq. 31)")
@@ -176,6 +187,8 @@ class SlamParams(StageParams):
             likelihood_exponent=self.likelihood_exponent,
             noise=MotionNoise(self.motion_std_xy, self.motion_std_yaw, self.motion_rel_trans, self.motion_rel_rot,
                               self.motion_rot_per_trans, self.motion_trans_per_rot),
+            proposal=self.proposal,
+            yaw_bias=YawBias(self.yaw_bias_sigma0, self.yaw_bias_walk) if self.yaw_bias else None,
             resampling=self.resampling, resample_threshold=self.resample_threshold, map_update=self.map_update,
             laplace_iterations=self.laplace_iterations, map_form=self.map_form, dtype=self.dtype,
             workers=self.workers, backend=self.backend, device=self.device, torch_threads=self.torch_threads,
@@ -198,14 +211,15 @@ class SlamStage(Stage):
     description = "RICH-SLAM: RBPF with Hilbert-GP occupancy maps, and baselines"
     inputs = ("ingest", "filter", "odometry")
     Params = SlamParams
-    version = "1"
+    version = "2"
     outputs = ("trajectory.parquet", "map_posterior.parquet", "map_grid.parquet", "map_stats.parquet")
 
     def run(self, ctx: StageContext) -> None:
         p: SlamParams = ctx.params
         cfg = p.config()
         base_from_radar = read_calibration(ctx)
-        scans, t_ns, odo = read_odometry(ctx)
+        scans, t_ns, odo, inc_cov = read_odometry(ctx)
+        motion = OdometryMotion(inc_cov, np.r_[0.0, np.diff(t_ns) * 1e-9])
         samples = read_samples(ctx, scans, base_from_radar, p)
         half, centre = domain_from_trajectory(odo[:, :2], p.domain_padding)
         basis = hm.make_basis(half, centre, p.n_basis, p.basis_kind)
@@ -228,7 +242,7 @@ class SlamStage(Stage):
         with ctx.progress(len(methods) * len(scans), "methods") as advance:
             for m in methods:
                 obs = tracker.observe if (m == p.method and m in HILBERT_METHODS) else None
-                res = run_method(m, odo, samples, basis, cfg, p.seed, observer=obs, on_step=advance)
+                res = run_method(m, odo, samples, basis, cfg, p.seed, observer=obs, on_step=advance, motion=motion)
                 results[m] = res
                 write_trajectory(ctx.output(f"trajectory_{m}.parquet"), scans, t_ns, res)
                 ctx.stats.setdefault("methods", {})[m] = {
@@ -237,6 +251,8 @@ class SlamStage(Stage):
                     "resamplings": res.resampled,
                     "n_eff_median": float(np.median(res.n_eff)) if len(res.n_eff) else None,
                     "map_form": res.form,
+                    **({"yaw_bias_final_deg_s": round(float(np.degrees(res.yaw_bias[-1])), 5)}
+                       if res.yaw_bias is not None and len(res.yaw_bias) else {}),
                     **({"device": res.device} if m in HILBERT_METHODS else {}),
                 }
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
@@ -269,13 +285,17 @@ def read_calibration(ctx: StageContext) -> F64:
     return T
 
 
-def read_odometry(ctx: StageContext) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F64]:
-    """Scan ids, times and (x, y, yaw) of the valid odometry rows, in scan order."""
+def read_odometry(ctx: StageContext) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F64, F64]:
+    """Scan ids, times, (x, y, yaw) and increment covariances ``(T, 3, 3)`` of the valid odometry rows, in
+    scan order."""
     return read_odometry_file(ctx.input("odometry", "odometry.parquet"), ctx.seq.name)
 
 
-def read_odometry_file(path: Path, seq: str) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F64]:
-    """:func:`read_odometry` of an ``odometry.parquet`` (``seq`` names the rerun command of the error)."""
+def read_odometry_file(path: Path, seq: str) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F64, F64]:
+    """:func:`read_odometry` of an ``odometry.parquet`` (``seq`` names the rerun command of the error).
+
+    The covariance of a kept row's increment is the sum of those of the rows since the previous kept row
+    (skipped rows' increments are added up; their errors taken as independent)."""
     t = read_artifact(path, "odometry")
     scans = t["scan"].to_numpy().astype(np.int64)
     keep = np.ones(len(scans), dtype=bool)
@@ -283,12 +303,21 @@ def read_odometry_file(path: Path, seq: str) -> tuple[npt.NDArray[np.int64], npt
         keep = t["valid"].to_numpy(zero_copy_only=False).astype(bool)
     poses = np.stack([t[c].to_numpy().astype(np.float64) for c in ("x", "y", "yaw")], axis=1)
     keep &= np.all(np.isfinite(poses), axis=1)
+    cov = np.zeros((len(scans), 3, 3))
+    for c, (i, j) in zip(ODOMETRY_COV_COLS, ODOMETRY_COV_IDX, strict=True):
+        cov[:, i, j] = cov[:, j, i] = np.nan_to_num(t[c].to_numpy().astype(np.float64))
+    order0 = np.argsort(scans, kind="stable")
+    csum = np.cumsum(cov[order0], axis=0)  # in scan order: a kept row takes the sum since the previous kept one
+    kept_sorted = keep[order0]
+    at = np.flatnonzero(kept_sorted)
+    acc = csum[at] - np.concatenate([np.zeros((1, 3, 3)), csum[at[:-1]]])
+    acc[:1] = 0.0
     order = np.argsort(scans[keep], kind="stable")
     scans, t_ns, poses = scans[keep][order], t["t_ns"].to_numpy()[keep][order], poses[keep][order]
     if len(scans) < 2:
         raise UserError(f"{path}: {len(scans)} valid odometry poses; the slam stage needs at least 2 "
                         f"(rerun `pipeline run odometry --seq {seq} --force`)")
-    return scans, t_ns.astype(np.int64), poses
+    return scans, t_ns.astype(np.int64), poses, acc
 
 
 def read_samples(ctx: StageContext, scans: npt.NDArray[np.int64], base_from_radar: F64, p: SlamParams

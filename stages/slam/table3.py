@@ -38,7 +38,7 @@ from stages.evaluate.rich_slam_paper import (
 from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, quat_to_yaw
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.methods import METHODS, domain_from_trajectory, run_method
+from stages.slam.methods import METHODS, OdometryMotion, domain_from_trajectory, run_method
 from stages.slam.stage import SlamParams, beam_samples_by_scan, read_odometry_file
 from stages.slam.unit_study import read_run_folder
 
@@ -48,15 +48,18 @@ F64 = npt.NDArray[np.floating[Any]]
 Truth = tuple[npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.float64]]
 
 
-def load_inputs(run_dir: Path, p: SlamParams) -> tuple[npt.NDArray[np.int64], F64, list[BeamSamples], Truth]:
-    """Scan times, odometry poses (valid rows, scan order), beam samples and ground truth of a run folder."""
+def load_inputs(run_dir: Path, p: SlamParams
+                ) -> tuple[npt.NDArray[np.int64], F64, list[BeamSamples], Truth, OdometryMotion]:
+    """Scan times, odometry poses (valid rows, scan order), beam samples, ground truth and the odometry's
+    increment covariance and intervals of a run folder."""
     gt, calib, radar = read_run_folder(run_dir)
-    scans, t_ns, poses = read_odometry_file(run_dir / "odometry" / "odometry.parquet", run_dir.name)
+    scans, t_ns, poses, cov = read_odometry_file(run_dir / "odometry" / "odometry.parquet", run_dir.name)
+    motion = OdometryMotion(cov, np.r_[0.0, np.diff(t_ns) * 1e-9])
     xyz = np.stack([radar[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], 1)
     samples = beam_samples_by_scan(radar["scan"].to_numpy().astype(np.int64), xyz, scans, calib, p)
     truth: Truth = (gt["t_ns"].astype(np.int64), np.stack([gt["x"], gt["y"]], 1).astype(np.float64),
                     quat_to_yaw(gt["qx"], gt["qy"], gt["qz"], gt["qw"]))
-    return t_ns, poses, samples, truth
+    return t_ns, poses, samples, truth, motion
 
 
 def groundtruth_anchored(run_dir: Path) -> bool:
@@ -91,14 +94,14 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
         todo = [(m, s) for s in seeds for m in methods if (run_dir.name, m, s, config) not in done]
         if not todo:
             continue
-        t_ns, odo, samples, truth = load_inputs(run_dir, p)
+        t_ns, odo, samples, truth, motion = load_inputs(run_dir, p)
         half, centre = domain_from_trajectory(odo[:, :2], p.domain_padding)
         basis = hm.make_basis(half, centre, p.n_basis, p.basis_kind)
         cfg = p.config()
         anchored = groundtruth_anchored(run_dir)
         for m, s in todo:
             t0 = time.perf_counter()
-            res = run_method(m, odo, samples, basis, cfg, s)
+            res = run_method(m, odo, samples, basis, cfg, s, motion=motion)
             est = np.asarray(res.poses, dtype=np.float64)
             e = evaluate_trajectory(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2], n_align=100)
             row = {"seq": run_dir.name, "method": m, "seed": s, "config": config, "pos_rmse_m": e.pos_rmse_m,

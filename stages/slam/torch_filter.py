@@ -19,7 +19,7 @@ import numpy.typing as npt
 import torch
 
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.rbpf import FilterHistory, MotionNoise, Resampling, StepResult, run_steps
+from stages.slam.rbpf import FilterHistory, MotionNoise, Proposal, Resampling, StepResult, run_steps
 from stages.slam.torch_maps import TorchHilbertMaps
 
 F64 = npt.NDArray[np.floating[Any]]
@@ -85,6 +85,7 @@ class TorchRBPF:
         rng: np.random.Generator,
         resampling: Resampling = "systematic",
         resample_threshold: float = 0.5,
+        proposal: Proposal | None = None,
     ) -> None:
         self.maps = maps
         self.device = maps.device
@@ -93,6 +94,7 @@ class TorchRBPF:
         self.logw = torch.full((n_particles,), -float(np.log(n_particles)), dtype=torch.float64, device=self.device)
         self.noise = noise
         self.rng = rng
+        self.proposal = proposal if proposal is not None else Proposal(noise, n_particles, rng)
         self.resampling: Resampling = resampling
         self.resample_threshold = resample_threshold
         self.history = FilterHistory()
@@ -106,11 +108,9 @@ class TorchRBPF:
         return int(self.poses.shape[0])
 
     def _propagate(self, u: npt.ArrayLike) -> None:
-        """eq. 21 with the numpy filter's draws (``rbpf.propagate``)."""
-        u = np.asarray(u, dtype=np.float64).reshape(3)
-        s_xy, s_yaw = self.noise.std(u)
-        v = self.rng.standard_normal((self.n_particles, 3)) * np.array([s_xy, s_xy, s_yaw])
-        self.poses = compose_t(self.poses, torch.as_tensor(u + v, device=self.device))
+        """eq. 21 with the numpy filter's draws (``rbpf.Proposal``: noise and bias drawn on the host)."""
+        d = self.proposal.draw(u, self.n_particles)
+        self.poses = compose_t(self.poses, torch.as_tensor(d, device=self.device))
 
     def step(self, u: npt.ArrayLike, samples: BeamSamples, first: bool = False,
              observer: Callable[[TorchRBPF, int], None] | None = None) -> StepResult:
@@ -135,6 +135,7 @@ class TorchRBPF:
         h.n_eff.append(n_eff)
         self._particles.append(self.poses.clone())
         self._parent_log.append(self._parents)
+        h.yaw_bias.append(self.proposal.bias_mean(w.cpu().numpy()) if self.proposal.bias is not None else float("nan"))
         if observer is not None:
             observer(self, best)
         resampled = n_eff < self.resample_threshold * self.n_particles
@@ -144,6 +145,8 @@ class TorchRBPF:
             idx = search_t(w, pos)
             self.poses = self.poses[idx]
             self.maps.select(idx)
+            if self.proposal.bias is not None:
+                self.proposal.select(idx.cpu().numpy())
             self.logw = torch.full_like(self.logw, -float(np.log(self.n_particles)))
             self._parents = idx
         h.resampled.append(resampled)

@@ -19,7 +19,7 @@ Requires torch (the ``learn`` extra); import this module only when the torch bac
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -27,7 +27,7 @@ import torch
 
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, stencil_offsets
-from stages.slam.rbpf import HilbertWeighting
+from stages.slam.rbpf import MapModel
 
 F64 = npt.NDArray[np.floating[Any]]
 TORCH_DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -118,15 +118,19 @@ class TorchHilbertMaps:
         self,
         basis: hm.HilbertBasis,
         n_particles: int,
-        lengthscale: float,
-        signal_variance: float,
-        noise_variance: float,
-        weighting: HilbertWeighting,
-        dtype: Literal["float64", "float32"] = "float64",
-        form: Literal["information", "covariance"] = "information",
+        model: MapModel,
         device: str | torch.device = "cpu",
         block_bytes: int | None = None,
     ) -> None:
+        """The maps of :class:`rbpf.MapModel` on a device; the Kalman update with one label noise only (else
+        ValueError naming what is missing)."""
+        if model.update != "kalman":
+            raise ValueError("the torch backend implements the Kalman map update; use backend = numpy for laplace")
+        if model.endpoint_noise_variance is not None:
+            raise ValueError("endpoint_noise_variance runs on the numpy backend only; set slam.backend = numpy")
+        self.model = model
+        lengthscale, signal_variance, noise_variance = model.lengthscale, model.signal_variance, model.noise_variance
+        weighting, dtype, form = model.weighting, model.dtype, model.form
         self.device = torch.device(device)
         self.dtype = TORCH_DTYPES[str(np.dtype(dtype))]
         self.form = form

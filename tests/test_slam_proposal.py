@@ -1,0 +1,70 @@
+"""The proposal from the odometry's covariance and the particles' yaw-rate bias (issue 27, items 3-4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.slam import hilbert_map as hm
+from stages.slam.beam_sampling import sample_beams
+from stages.slam.methods import OdometryMotion, SlamConfig, domain_from_trajectory, run_method
+from stages.slam.rbpf import MotionNoise, Proposal, YawBias, propagate
+from stages.slam.se2 import compose, wrap_angle
+from stages.slam.synthetic import make_run
+
+
+def test_gmapping_proposal_draws_what_propagate_draws() -> None:
+    poses = np.random.default_rng(1).normal(size=(30, 3))
+    u = np.array([0.1, 0.01, 0.02])
+    a = propagate(poses, u, MotionNoise(0.01, 0.002, 0.05), np.random.default_rng(4))
+    rng = np.random.default_rng(4)
+    b = compose(poses, Proposal(MotionNoise(0.01, 0.002, 0.05), 30, rng).draw(u, 30))
+    np.testing.assert_array_equal(a, b)
+
+
+def test_odometry_covariance_proposal_has_that_covariance_and_bias_corrects_yaw() -> None:
+    cov = np.array([[4e-4, 1e-4, 2e-5], [1e-4, 2e-4, -1e-5], [2e-5, -1e-5, 1e-5]])
+    n = 20000
+    p = Proposal(MotionNoise(), n, np.random.default_rng(0), cov=np.stack([np.zeros((3, 3)), cov]),
+                 dt=np.array([0.0, 0.1]), bias=YawBias(sigma0=0.02, walk=0.0))
+    assert p.bias is not None
+    b = p.bias.copy()
+    d = p.draw([0.1, 0.0, 0.01], n)
+    np.testing.assert_allclose(np.cov(d[:, :2].T), cov[:2, :2], rtol=0.05)
+    # yaw: the increment less each particle's bias times dt, plus the yaw noise
+    r = d[:, 2] - (0.01 - b * 0.1)
+    assert abs(np.var(r) / cov[2, 2] - 1) < 0.05 and abs(np.mean(r)) < 1e-4
+    with pytest.raises(ValueError, match="scan intervals"):
+        Proposal(MotionNoise(), 3, np.random.default_rng(0), bias=YawBias())
+
+
+def test_run_method_refuses_the_odometry_covariance_without_it() -> None:
+    run = make_run(5, np.random.default_rng(0))
+    basis = hm.make_basis([10.0, 10.0], [0.0, 0.0], 16)
+    scans = [sample_beams(p, np.zeros(2), 1.0, 5.0) for p in run.scans]
+    with pytest.raises(ValueError, match="increment covariance"):
+        run_method("fastslam_grid", run.odometry, scans, basis, SlamConfig(proposal="odometry_covariance"), 0)
+    run_method("rich_slam_paper", run.odometry, scans, basis, SlamConfig(proposal="odometry_covariance",
+                                                                          n_particles=2, workers=0), 0)
+
+
+def test_bias_state_converges_to_a_constant_gyro_bias_and_bounds_the_heading_error() -> None:
+    """Odometry whose yaw drifts linearly (0.01 rad/s = 0.57 deg/s over 60 s): the particles' bias converges to
+    it and the filter's heading error stays bounded while the odometry's grows to ~27 deg."""
+    n, bias = 600, 0.01
+    run = make_run(n, np.random.default_rng(1), beams_per_scan=30, outlier_fraction=0.0, odo_trans_noise=0.005,
+                   odo_yaw_noise=0.002, odo_yaw_bias=bias * 0.1)
+    scans = [sample_beams(p, np.zeros(2), 1.0, 5.0) for p in run.scans]
+    half, centre = domain_from_trajectory(run.odometry[:, :2], 5.0)
+    basis = hm.make_basis(half, centre, 256)
+    motion = OdometryMotion(np.tile(np.diag([0.005, 0.005, 0.002]) ** 2, (n, 1, 1)), np.full(n, 0.1))
+    # a walk well above the datasheet's keeps the 50 particles' biases diverse (stages/slam/README.md)
+    cfg = SlamConfig(n_particles=50, workers=0, proposal="odometry_covariance", yaw_bias=YawBias(0.02, 3e-4))
+    r = run_method("fastslam_grid", run.odometry, scans, basis, cfg, seed=0, motion=motion)
+    assert r.yaw_bias is not None
+    err = np.abs(np.degrees(wrap_angle(r.poses[:, 2] - run.groundtruth[:, 2])))
+    odo = np.abs(np.degrees(wrap_angle(run.odometry[:, 2] - run.groundtruth[:, 2])))
+    assert odo[-1] > 20.0
+    assert abs(r.yaw_bias[-1] - bias) < 0.2 * bias  # converged within 20 %
+    assert abs(np.mean(r.yaw_bias[-100:]) - bias) < 0.2 * bias
+    assert err.max() < 0.3 * odo[-1] and err[-100:].max() < 3.0
