@@ -360,9 +360,11 @@ def report(
     for m in missing:
         console.print(f"[yellow]note[/] {m}: no evaluation in {runs}; run `pipeline run evaluate --seq {m}`")
     if out_file is not None:
-        written = rep.write_outputs(records, out_file, title, runs_dir=runs)
         if sweep is None:
+            written = rep.write_outputs(records, out_file, title, runs_dir=runs)
             written += rep.write_figures(runs, records, out_file)
+        else:
+            written = rep.write_sweep_markdown(records, out_file, title)
         for p in written:
             out.print(str(p))
 

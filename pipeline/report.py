@@ -24,7 +24,8 @@ from pipeline.store import RunStore
 
 __all__ = ["METRICS_FILE", "build_tables", "comparison_table", "gather", "metrics_path", "read_records",
            "report_sequences", "resolve_sequences", "rich_table", "sequence_context", "stage_report", "sweep_records",
-           "sweep_tables", "to_markdown", "uncertainty_curves", "write_figures", "write_outputs"]
+           "sweep_tables", "to_markdown", "uncertainty_curves", "write_figures", "write_outputs",
+           "write_sweep_markdown"]
 
 
 def sequence_context(seqs: Iterable[str], runs_dir: Path | None = None) -> dict[str, dict[str, Any]]:
@@ -123,6 +124,19 @@ def write_outputs(records: Sequence[dict[str, Any]], out: Path, title: str,
     pq_path = out.with_suffix(".parquet")
     write_artifact(cols, pq_path, "metrics")
     return [out, pq_path]
+
+
+def write_sweep_markdown(records: Sequence[dict[str, Any]], out: Path, title: str) -> list[Path]:
+    """``out``: the sweep's tables (one row per point, as printed) as markdown, not the pooled per-sequence
+    tables, which would mix the points."""
+    lines = [f"# {title}", ""]
+    for name, headers, rows in sweep_tables(records):
+        lines += [f"## {name}", "", "| " + " | ".join(headers) + " |", "|" + " --- |" * len(headers)]
+        lines += ["| " + " | ".join(map(str, r)) + " |" for r in rows]
+        lines.append("")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines))
+    return [out]
 
 
 def uncertainty_curves(runs_dir: Path, seqs: Sequence[str]) -> dict[str, Any]:

@@ -25,14 +25,14 @@ MAPS = ("radar_map", "completed_map")
 
 def source_of(params: str | Mapping[str, Any]) -> str | None:
     """The trajectory a point's maps were built along: 'groundtruth', 'odometry', a SLAM method's name
-    ('slam' for the default method's file); None when the point does not set ``voxel.trajectory``."""
+    ('slam' for the default method's file), with ' (level)' for ``voxel.attitude = level``; None when the
+    point does not set ``voxel.trajectory``."""
     p = json.loads(params) if isinstance(params, str) else dict(params)
     traj = p.get("voxel.trajectory")
     if traj is None:
         return None
-    if traj == "slam":
-        return str(p.get("voxel.slam_method") or "slam")
-    return str(traj)
+    name = str(p.get("voxel.slam_method") or "slam") if traj == "slam" else str(traj)
+    return f"{name} (level)" if traj != "groundtruth" and p.get("voxel.attitude") == "level" else name
 
 
 def radar_only_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
@@ -47,7 +47,7 @@ def radar_only_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]
         method, metric = str(r["method"]), str(r["metric"])
         if method in MAPS and metric in MAP_METRICS:
             row[f"{method}.{metric}"] = float(r["value"])
-        elif metric in TRAJ_METRICS and method == src:
+        elif metric in TRAJ_METRICS and method == src.removesuffix(" (level)"):
             row[f"traj.{metric}"] = float(r["value"])
     rows = list(by_key.values())
     for row in rows:
