@@ -147,6 +147,11 @@ def test_sweep_runs_points_shares_upstream_and_gathers(tmp_path: Path) -> None:
     assert [f.name for f in res.figures] == ["sweep_toy.png"] and res.figures[0].stat().st_size > 1000
     # gathered by `pipeline report --sweep`
     recs = sweep_records(runs, "sweep_toy")
+    from pipeline.report import write_sweep_markdown
+
+    (md,) = write_sweep_markdown(recs, tmp_path / "sweep.md", "Sweep sweep_toy")
+    text = md.read_text()
+    assert "## AUC per sweep point" in text and "| toyseq | feature_counts=16,seed=0 |" in text
     tabs = {t[0]: t for t in sweep_tables(recs)}
     agg = tabs["toyseq: AUC per number of map features, mean ± std over 2 point(s)"]
     assert agg[1] == ["method", "16", "64"]
