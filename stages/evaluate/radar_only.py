@@ -94,7 +94,7 @@ def radar_only_table(records: Sequence[Mapping[str, Any]]) -> tuple[str, list[st
 
 def plot_map_vs_trajectory(path: Path, records: Sequence[Mapping[str, Any]], title: str = "") -> Path:
     """CD-l2 of the completed (filled) and radar (open) maps against the yaw RMSE (no alignment) of the
-    trajectory they were built along; one marker per sequence and source, a line per sequence."""
+    trajectory they were built along; a colour per sequence, a marker per source."""
     plt = figures._plt()
     rows = radar_only_rows(records)
     fig, ax = plt.subplots(figsize=(7.5, 4.8), constrained_layout=True)
@@ -102,18 +102,16 @@ def plot_map_vs_trajectory(path: Path, records: Sequence[Mapping[str, Any]], tit
     markers = "osD^v<>p*hX"
     sources = list(dict.fromkeys(r["source"] for r in rows))
     for i, seq in enumerate(seqs):
-        sel = sorted((r for r in rows if r["seq"] == seq), key=lambda r: r.get("traj.ate_yaw_rmse_anchored_deg", 0))
-        x = [r.get("traj.ate_yaw_rmse_anchored_deg") for r in sel]
+        colour = f"C{i % 10}"
         for key, filled in (("completed_map.cd_l2", True), ("radar_map.cd_l2", False)):
-            pts = [(a, r.get(key), r["source"]) for a, r in zip(x, sel, strict=True)
-                   if a is not None and r.get(key) is not None]
-            if not pts:
-                continue
-            line = ax.plot([p[0] for p in pts], [p[1] for p in pts], "-", color=f"C{i}", alpha=0.5 if filled else 0.25,
-                           label=f"{seq}: {'completed' if filled else 'radar'} map")[0]
-            for a, c, src in pts:
-                ax.plot(a, c, markers[sources.index(src) % len(markers)], color=line.get_color(),
-                        mfc=line.get_color() if filled else "none", ms=7)
+            for r in rows:
+                a, c = r.get("traj.ate_yaw_rmse_anchored_deg"), r.get(key)
+                if r["seq"] != seq or a is None or c is None:
+                    continue
+                ax.plot(a, c, markers[sources.index(r["source"]) % len(markers)], color=colour,
+                        mfc=colour if filled else "none", ms=7)
+            ax.plot([], [], "o", color=colour, mfc=colour if filled else "none",
+                    label=f"{seq}: {'completed' if filled else 'radar'} map")
     for j, src in enumerate(sources):
         ax.plot([], [], markers[j % len(markers)], color="grey", label=f"along {src}")
     ax.set_xlabel("yaw RMSE of the trajectory, no alignment (deg)")
