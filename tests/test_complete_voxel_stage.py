@@ -138,7 +138,7 @@ def test_shipped_voxel_checkpoint_loads_with_its_validation_choices() -> None:
 
     path = PROJECT_ROOT / VOXEL_CHECKPOINT
     assert checkpoint_kind(path) == "voxel_unet"
-    model, meta = load_voxel_checkpoint(path)
+    _model, meta = load_voxel_checkpoint(path)
     assert meta.resolution == RES and 0 < meta.threshold < 1 and meta.union_radar
     assert not set(meta.train["val_scenes"]) & set(meta.train["train_scenes"])
     assert meta.train["union_decision"]["val_scenes"] == meta.train["val_scenes"]
