@@ -129,3 +129,16 @@ def test_auto_checkpoint_by_kind_and_model() -> None:
     assert default_checkpoint("rmap") == REAL_CHECKPOINT
     assert default_checkpoint("rmap", "voxel") == VOXEL_CHECKPOINT
     assert default_checkpoint("simulated", "voxel") == VOXEL_CHECKPOINT
+
+
+def test_shipped_voxel_checkpoint_loads_with_its_validation_choices() -> None:
+    from pipeline.paths import PROJECT_ROOT
+    from stages.complete.stage import VOXEL_CHECKPOINT
+    from stages.complete.voxel_checkpoint import checkpoint_kind, load_voxel_checkpoint
+
+    path = PROJECT_ROOT / VOXEL_CHECKPOINT
+    assert checkpoint_kind(path) == "voxel_unet"
+    _model, meta = load_voxel_checkpoint(path)
+    assert meta.resolution == RES and 0 < meta.threshold < 1 and meta.union_radar
+    assert not set(meta.train["val_scenes"]) & set(meta.train["train_scenes"])
+    assert meta.train["union_decision"]["val_scenes"] == meta.train["val_scenes"]
