@@ -161,7 +161,7 @@ def test_zero_odometry_covariance_without_bias_reproduces_odometry_and_paper_met
     for c in ("cov_xx", "cov_xy", "cov_xyaw", "cov_yy", "cov_yyaw", "cov_yawyaw"):
         odo[c] = np.zeros(15)
     write_artifact(odo, inp["dirs"]["odometry"] / "odometry.parquet", "odometry")
-    _run(_ctx(tmp_path / "out", inp["dirs"], n_particles=4, n_basis=36, yaw_bias=False,
+    _run(_ctx(tmp_path / "out", inp["dirs"], n_particles=4, n_basis=36, yaw_bias=False, proposal="odometry_covariance",
               methods=["fastslam_grid", "rich_slam", "rich_slam_paper"], workers=0, n_map_snapshots=0))
     for m in ("fastslam_grid", "rich_slam"):  # the odometry's own (zero) covariance: no noise at all
         t = pq.read_table(tmp_path / "out" / f"trajectory_{m}.parquet")

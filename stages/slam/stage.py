@@ -51,8 +51,9 @@ class SlamParams(StageParams):
 
     method: Method = Field("rich_slam", description="method whose trajectory is trajectory.parquet and whose "
                            "map is written (odometry, fastslam_grid, rich_slam, rich_slam_no_et, rich_slam_mean_only)")
-    methods: list[Method] = Field(list(METHODS), description="methods run and written as trajectory_<method>.parquet "
-                                  "(the main method always runs)")
+    methods: list[Method] = Field([m for m in METHODS if m != "rich_slam_paper"],
+                                  description="methods run and written as trajectory_<method>.parquet (the main "
+                                  "method always runs; rich_slam_paper equals rich_slam at the default proposal)")
     n_particles: int = Field(200, ge=1, description="particles N_p (Sec. V-A2)")
     seed: int = Field(0, description="seed of the particle filter's random generator")
     # -- Hilbert-GP map (Table II)
@@ -127,10 +128,11 @@ class SlamParams(StageParams):
     motion_trans_per_rot: float = Field(0.06, ge=0, description="extra xy std per radian of odometry rotation "
                                         "(m/rad; GMapping's srt)")
     proposal: Literal["odometry_covariance", "gmapping"] = Field(
-        "odometry_covariance", description="the filters' proposal noise: the odometry's own per-scan increment "
-        "covariance (odometry.parquet cov_*) or GMapping's fitted form (motion_*); rich_slam_paper: always gmapping")
-    yaw_bias: bool = Field(True, description="each particle carries a yaw-rate bias that corrects its odometry "
-                           "heading increment (not rich_slam_paper)")
+        "gmapping", description="the filters' proposal noise: GMapping's fitted form (motion_*; the default until "
+        "the odometry-covariance proposal beats it, stages/slam/README.md) or the odometry's own per-scan increment "
+        "covariance (odometry.parquet cov_*); rich_slam_paper: always gmapping")
+    yaw_bias: bool = Field(False, description="each particle carries a yaw-rate bias that corrects its odometry "
+                           "heading increment (not rich_slam_paper); off by default with the gmapping proposal")
     yaw_bias_sigma0: float = Field(0.005, gt=0, description="yaw-rate bias prior std, rad/s (the odometry's gyro "
                                    "bias prior, odometry.sigma_gyro_bias0)")
     yaw_bias_walk: float = Field(3.9e-6, ge=0, description="yaw-rate bias random walk, rad/s/sqrt(s) (3DM-GX5 "
