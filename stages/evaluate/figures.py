@@ -14,13 +14,14 @@ F64 = npt.NDArray[np.float64]
 METHOD_COLOURS = {
     "odometry": "tab:orange", "fastslam_grid": "tab:green", "rich_slam": "tab:red",
     "rich_slam_no_et": "tab:purple", "rich_slam_refined": "tab:brown", "rich_slam_mean_only": "tab:pink",
-    "hilbert_gp": "tab:red", "rff": "tab:blue", "sparse": "tab:green",
+    "rich_slam_paper": "tab:olive", "hilbert_gp": "tab:red", "rff": "tab:blue", "sparse": "tab:green",
     "nystrom": "tab:orange", "grid": "tab:gray",
 }
 METHOD_LABELS = {
     "odometry": "odometry", "fastslam_grid": "FastSLAM (grid)", "rich_slam": "RICH-SLAM",
     "rich_slam_no_et": "RICH-SLAM w/o ET", "rich_slam_refined": "RICH-SLAM + pose refinement",
-    "rich_slam_mean_only": "RICH-SLAM mean only", "hilbert_gp": "HILBERT-GP (Kalman)", "rff": "RFF (SGD)",
+    "rich_slam_mean_only": "RICH-SLAM mean only", "rich_slam_paper": "RICH-SLAM (paper config)",
+    "hilbert_gp": "HILBERT-GP (Kalman)", "rff": "RFF (SGD)",
     "sparse": "SPARSE (SGD)", "nystrom": "NYSTRÖM (SGD)", "grid": "count grid",
 }
 
