@@ -16,11 +16,12 @@ from typing import Any, Literal, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from stages.odometry.metrics import se2_increments
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, stencil_offsets, to_world
 from stages.slam.particle_linalg import StackedCovariance, StackedInformation
 from stages.slam.pose_refinement import PoseRefinement, log_gaussian, refine, sample_proposal
-from stages.slam.se2 import compose, wrap_angle
+from stages.slam.se2 import compose, wrap_angle  # noqa: F401  (wrap_angle: re-exported for the slam modules)
 
 Resampling = Literal["systematic", "stratified", "multinomial"]
 F64 = npt.NDArray[np.floating[Any]]
@@ -29,17 +30,9 @@ F64 = npt.NDArray[np.floating[Any]]
 def odometry_increments(poses: npt.ArrayLike) -> F64:
     """Body-frame increments ``u[i] = x[i-1]^-1 (+) x[i]`` of an odometry trajectory ``(T, 3)``.
 
-    Row 0 is zero (the filter starts at the first odometry pose).
+    Row 0 is zero (the filter starts at the first odometry pose); the odometry stage's own definition.
     """
-    x = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-    u = np.zeros_like(x)
-    if len(x) > 1:
-        dp = x[1:, :2] - x[:-1, :2]
-        c, s = np.cos(x[:-1, 2]), np.sin(x[:-1, 2])
-        u[1:, 0] = c * dp[:, 0] + s * dp[:, 1]
-        u[1:, 1] = -s * dp[:, 0] + c * dp[:, 1]
-        u[1:, 2] = wrap_angle(x[1:, 2] - x[:-1, 2])
-    return u
+    return se2_increments(np.asarray(poses, dtype=np.float64))
 
 
 @dataclass(frozen=True)

@@ -40,18 +40,21 @@ def interpolate_se3(
     return out, valid
 
 
+def sorted_unique_stamps(t: npt.ArrayLike) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """Stamps sorted (stable) with repeats dropped (the first kept), and the indices of the kept rows."""
+    tt = np.asarray(t, dtype=np.int64)
+    order = np.argsort(tt, kind="stable")
+    keep = np.r_[True, np.diff(tt[order]) > 0] if len(tt) else np.zeros(0, bool)
+    return tt[order][keep], order[keep]
+
+
 def interpolate_se2(
     t_query: npt.ArrayLike, t: npt.ArrayLike, x: npt.ArrayLike, y: npt.ArrayLike, yaw: npt.ArrayLike, z: float
 ) -> tuple[FloatArray, BoolArray]:
     """SE(2) poses lifted to SE(3) at ``t_query`` (linear x, y and unwrapped yaw; constant height ``z``,
     zero roll and pitch); ``valid`` marks query times inside the trajectory's time span."""
     tq = np.asarray(t_query, dtype=np.int64)
-    tt = np.asarray(t, dtype=np.int64)
-    order = np.argsort(tt, kind="stable")
-    tt = tt[order]
-    keep = np.r_[True, np.diff(tt) > 0]
-    idx = order[keep]
-    tt = tt[keep]
+    tt, idx = sorted_unique_stamps(t)
     out = np.tile(np.eye(4), (len(tq), 1, 1))
     valid = (tq >= tt[0]) & (tq <= tt[-1]) if len(tt) else np.zeros(len(tq), bool)
     if not np.any(valid):
@@ -81,12 +84,7 @@ def interpolate_planar_attitude(
     """
     tq = np.asarray(t_query, dtype=np.int64)
     planar, valid = interpolate_se2(tq, t, x, y, yaw, 0.0)
-    ta = np.asarray(t_att, dtype=np.int64)
-    order = np.argsort(ta, kind="stable")
-    ta = ta[order]
-    keep = np.r_[True, np.diff(ta) > 0] if len(ta) else np.zeros(0, bool)
-    idx = order[keep]
-    ta = ta[keep]
+    ta, idx = sorted_unique_stamps(t_att)
     valid = valid & ((tq >= ta[0]) & (tq <= ta[-1]) if len(ta) else np.zeros(len(tq), bool))
     out = np.tile(np.eye(4), (len(tq), 1, 1))
     if not np.any(valid):
