@@ -13,10 +13,11 @@ Both maps are sparse log-odds voxel maps at 0.15 m (``voxel_map.py``) built alon
 Radar-only maps (``trajectory = "odometry" | "slam"``): the planar estimate (x, y, yaw: the odometry's or a
 SLAM method's) is combined with the odometry's height, roll and pitch at the same radar scan times
 (``attitude = "odometry"``, default; ``interpolate_planar_attitude``). RICH-SLAM and the grid filter estimate
-only the planar pose and start from the odometry's; the EKF observes roll and pitch through gravity and the
-height through the radar's vertical velocity, so the best 3D pose available is the odometry's with its x, y
-and yaw replaced by the SLAM method's. A level lift (zero roll and pitch at the constant base height
-``se2_height``: default the first ground-truth height, 0 without ground truth) stays as ``attitude = "level"``;
+only the planar pose and start from the odometry's, so the 3D pose is the odometry's with its x, y and yaw
+replaced by the SLAM method's. How good that is depends on the EKF's vertical channel: on coloradar_5_twin its
+height drifts to -2.9 m and its pitch error reaches 11 degrees (docs/radar_only.md), where the level lift
+wins. The level lift (zero roll and pitch at the constant base height ``se2_height``: default the first
+ground-truth height, 0 without ground truth) stays as ``attitude = "level"``;
 on the handheld ColoRadar rig, whose roll and pitch reach several degrees, it tilts far walls by decimetres.
 A trajectory that covers less than ``min_coverage`` of the radar scans is an error; a named SLAM method that
 was not run is an error that lists the ones that were. Poses at sensor times: linear position and slerp
@@ -197,8 +198,8 @@ class VoxelStage(Stage):
                 return np.tile(np.eye(4), (len(t), 1, 1)), np.zeros(len(t), bool)
             return interpolate_se3(t, gt_t, gt_xyz, gt_q)
 
-        radar_poses = gt_poses if p.trajectory == "groundtruth" else self._se2_poses(ctx, p, gt_xyz)
-        radar_map = self._radar_map(ctx, p, radar_model, calib["base_from_radar"], radar_poses)
+        radar_poses, traj_path = (gt_poses, None) if p.trajectory == "groundtruth" else self._se2_poses(ctx, p, gt_xyz)
+        radar_map = self._radar_map(ctx, p, radar_model, calib["base_from_radar"], radar_poses, traj_path)
         lidar_map = self._lidar_map(ctx, p, model, calib, gt_poses)
 
         for kind, vmap in (("radar", radar_map), ("lidar", lidar_map)):
@@ -254,7 +255,7 @@ class VoxelStage(Stage):
             ctx.warn(f"scene '{scene}': lidar_filtered is rebuilt ({ms.source_detail}), not the authors' map file")
 
     # -- trajectories --------------------------------------------------------------------------------
-    def _se2_poses(self, ctx: StageContext, p: VoxelParams, gt_xyz: F64) -> Any:
+    def _se2_poses(self, ctx: StageContext, p: VoxelParams, gt_xyz: F64) -> tuple[Any, Path]:
         """Poses along the odometry or a SLAM method: their x, y, yaw with the odometry's z, roll and pitch
         (``attitude = "odometry"``) or level at ``se2_height``."""
         if p.trajectory == "odometry":
@@ -282,7 +283,7 @@ class VoxelStage(Stage):
             def poses(t: npt.NDArray[np.int64]) -> tuple[F64, npt.NDArray[np.bool_]]:
                 return interpolate_se2(t, cols["t_ns"], cols["x"], cols["y"], cols["yaw"], z)
 
-            return self._covering(ctx, p, path, poses)
+            return poses, path
         odo = tab if p.trajectory == "odometry" else read_artifact(ctx.input("odometry", "odometry.parquet"),
                                                                    "odometry")
         if "valid" in odo.column_names:
@@ -294,29 +295,11 @@ class VoxelStage(Stage):
             return interpolate_planar_attitude(t, cols["t_ns"], cols["x"], cols["y"], cols["yaw"], att["t_ns"],
                                                att["z"], att["roll"], att["pitch"])
 
-        return self._covering(ctx, p, path, poses3)
-
-    @staticmethod
-    def _covering(ctx: StageContext, p: VoxelParams, path: Path, poses: Any) -> Any:
-        """``poses``, once checked to cover at least ``min_coverage`` of the radar scans (a one-line error if not)."""
-        name = "radar_filtered.parquet" if p.radar_source == "filtered" else "radar.parquet"
-        radar = read_artifact(ctx.input("filter" if p.radar_source == "filtered" else "ingest", name),
-                              "radar_filtered" if p.radar_source == "filtered" else "radar", columns=["scan", "t_ns"])
-        _, first = np.unique(radar.column("scan").to_numpy(), return_index=True)
-        t_scan = radar.column("t_ns").to_numpy()[first]
-        if len(t_scan):
-            share = float(poses(t_scan)[1].mean())
-            ctx.stats["trajectory_coverage"] = round(share, 4)
-            if share < p.min_coverage:
-                raise UserError(f"{path}: the {p.trajectory} trajectory covers {100 * share:.1f} % of the "
-                                f"{len(t_scan)} radar scans (voxel.min_coverage = {p.min_coverage:g}); rerun "
-                                f"`pipeline run {p.trajectory} --seq {ctx.seq.name} --force` or lower "
-                                f"voxel.min_coverage")
-        return poses
+        return poses3, path
 
     # -- radar ---------------------------------------------------------------------------------------
     def _radar_map(self, ctx: StageContext, p: VoxelParams, model: SensorModel, base_from_radar: F64,
-                   poses: Any) -> VoxelMap:
+                   poses: Any, traj_path: Path | None = None) -> VoxelMap:
         if p.radar_source == "filtered":
             tab = read_artifact(ctx.input("filter", "radar_filtered.parquet"), "radar_filtered",
                                 columns=["scan", "t_ns", "x", "y", "z"])
@@ -328,6 +311,14 @@ class VoxelStage(Stage):
         scans, lengths = scan_lengths(scan)
         starts = np.r_[0, np.cumsum(lengths)[:-1]].astype(np.int64)
         T_wb, valid = poses(t_ns[starts]) if len(starts) else (np.zeros((0, 4, 4)), np.zeros(0, bool))
+        if traj_path is not None and len(valid):  # a radar-only trajectory must cover the scans
+            share = float(valid.mean())
+            ctx.stats["trajectory_coverage"] = round(share, 4)
+            if share < p.min_coverage:
+                raise UserError(f"{traj_path}: the {p.trajectory} trajectory covers {100 * share:.1f} % of the "
+                                f"{len(valid)} radar scans (voxel.min_coverage = {p.min_coverage:g}); rerun "
+                                f"`pipeline run {p.trajectory} --seq {ctx.seq.name} --force` or lower "
+                                f"voxel.min_coverage")
         T_ws = T_wb @ base_from_radar
         dirs = fan_directions(np.radians(p.radar_azimuth_fov_deg), np.radians(p.radar_elevation_fov_deg),
                               p.resolution, p.radar_max_range)
