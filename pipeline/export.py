@@ -60,19 +60,12 @@ def _warn(message: str) -> None:
     warnings.warn(message, UserWarning, stacklevel=3)
 
 
-def yaw_to_quat(yaw: npt.ArrayLike) -> F64:
-    """(qx, qy, qz, qw) of a rotation about z."""
-    half = 0.5 * np.asarray(yaw, dtype=np.float64)
-    return np.stack([np.zeros_like(half), np.zeros_like(half), np.sin(half), np.cos(half)], axis=1)
-
-
 def ypr_to_quat(yaw: npt.ArrayLike, pitch: npt.ArrayLike, roll: npt.ArrayLike) -> F64:
     """(qx, qy, qz, qw) of R = Rz(yaw) Ry(pitch) Rx(roll) (the odometry artifact's Z-Y-X angles)."""
-    cy, sy = np.cos(0.5 * np.asarray(yaw, np.float64)), np.sin(0.5 * np.asarray(yaw, np.float64))
-    cp, sp = np.cos(0.5 * np.asarray(pitch, np.float64)), np.sin(0.5 * np.asarray(pitch, np.float64))
-    cr, sr = np.cos(0.5 * np.asarray(roll, np.float64)), np.sin(0.5 * np.asarray(roll, np.float64))
-    return np.stack([sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
-                     cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy], axis=1)
+    from scipy.spatial.transform import Rotation
+
+    angles = np.stack([np.asarray(a, np.float64) for a in (yaw, pitch, roll)], axis=-1).reshape(-1, 3)
+    return np.asarray(Rotation.from_euler("ZYX", angles).as_quat(), np.float64)
 
 
 # -- reading -----------------------------------------------------------------------------------------------------
