@@ -58,8 +58,8 @@ def radar_only_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]
         mine = row.get("completed_map.cd_l2")
         row["ratio_cd_l2"] = mine / ref if ref and mine is not None else None
     order = {"groundtruth": 0, "odometry": 1}
-    rows.sort(key=lambda r: (list(dict.fromkeys(str(x["seq"]) for x in records)).index(r["seq"]),
-                             order.get(r["source"], 2), r["source"]))
+    seq_rank = {s: i for i, s in enumerate(dict.fromkeys(r["seq"] for r in rows))}  # first-seen order
+    rows.sort(key=lambda r: (seq_rank[r["seq"]], order.get(r["source"], 2), r["source"]))
     return rows
 
 
