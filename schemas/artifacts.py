@@ -123,7 +123,8 @@ ARTIFACTS: dict[str, ArtifactSchema] = {
         ArtifactSchema(
             "map_trajectory", "voxel", "map_trajectory.parquet", 1,
             _s(*_MAP_COLS),
-            "a map set's full trajectory (positions), world frame",
+            "the trajectory a map was built along (positions): a map set's recorded one, or the radar's at the "
+            "scans the radar map was built from, world frame",
         ),
         ArtifactSchema(
             "patches", "patches", "patches.parquet", 2,

@@ -179,3 +179,30 @@ def test_voxel_stage_without_groundtruth(tmp_path: Path, ingest_dir: Path) -> No
     write_artifact({"t_ns": np.zeros(0, np.int64), **empty}, bare / "groundtruth.parquet", "groundtruth")
     with pytest.raises(UserError, match=r"groundtruth.parquet: no ground-truth poses; .*voxel.trajectory=odometry"):
         _run(tmp_path, VoxelParams(), {"ingest": bare})
+
+
+def test_voxel_stage_writes_the_trajectory_the_radar_map_was_built_along(gt_run: tuple[Path, dict],
+                                                                          ingest_dir: Path) -> None:
+    """Log sequences write ``map_trajectory.parquet`` as map sets do: the radar's positions at the integrated
+    scans (ground truth at the scan times, through the radar mount), which the band pre-filter reads."""
+    from stages.complete.voxel_grid import Band, in_band
+    from stages.voxel.poses import interpolate_se3
+    from tests.test_voxel_synthetic import BASE_FROM_RADAR
+
+    out, stats = gt_run
+    tab = read_artifact(out / "map_trajectory.parquet", "map_trajectory")
+    traj = np.stack([tab.column(c).to_numpy() for c in "xyz"], 1)
+    assert len(traj) == stats["radar"]["scans"] == 49
+    assert tab.schema.metadata[b"trajectory"] == b"groundtruth"
+    radar = read_artifact(ingest_dir / "radar.parquet", "radar", columns=["scan", "t_ns"])
+    _, first = np.unique(radar.column("scan").to_numpy(), return_index=True)
+    gt = read_artifact(ingest_dir / "groundtruth.parquet", "groundtruth")
+    T, ok = interpolate_se3(radar.column("t_ns").to_numpy()[first], gt.column("t_ns").to_numpy(),
+                            np.stack([gt.column(c).to_numpy() for c in "xyz"], 1),
+                            np.stack([gt.column(c).to_numpy() for c in ("qx", "qy", "qz", "qw")], 1))
+    expect = (T[ok] @ BASE_FROM_RADAR)[:, :3, 3]
+    assert np.allclose(traj, expect, atol=1e-9)
+    assert not np.allclose(traj, T[ok][:, :3, 3], atol=0.05)  # the radar's position, not the base's
+    radar_map, _ = _map(out, "radar")
+    keep = in_band(radar_map, traj, Band(2.0, -1.0, 1.0))
+    assert 0 < keep.sum() < len(radar_map)  # the band pre-filter now runs on a log sequence

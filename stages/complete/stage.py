@@ -6,8 +6,8 @@ resolution: ``assembly = average`` (the paper's Sec. V, the mean of the points i
 ``snap`` (the voxel centres, on the lattice of the radar and lidar maps). ``model = voxel`` (issue 28): the
 voxel U-Net (``voxel_net.py``) predicts the occupancy of every voxel of the radar map's lattice inside the
 trajectory band, thresholded at the checkpoint's validation threshold; it needs the recorded trajectory
-(``map_trajectory.parquet``, map sequences ``rmap_*``). ``prefilter = band`` keeps only radar voxels inside the
-trajectory band (RMap's future work); ``auto``: on for the voxel model (trained so), off for UpPoinTr. torch is
+(``map_trajectory.parquet``: a map set's recorded one, or the one a log's radar map was built along).
+``prefilter = band`` keeps only radar voxels inside the trajectory band (RMap's future work); ``auto``: on for the voxel model (trained so), off for UpPoinTr. torch is
 imported only inside :meth:`CompleteStage.run`, so the pipeline imports without the ``learn`` extra.
 """
 
@@ -209,8 +209,8 @@ class CompleteStage(Stage):
         path = ctx.input_dirs["voxel"] / "map_trajectory.parquet"
         if not path.is_file():
             raise UserError(f"complete: {ctx.seq.name} has no recorded trajectory ({path} is missing; the voxel "
-                            "model and the band pre-filter need map sequences rmap_*); set complete.model = uppointr "
-                            "and complete.prefilter = none")
+                            "model and the band pre-filter need it); rerun `pipeline run voxel --seq "
+                            f"{ctx.seq.name} --force` or set complete.model = uppointr and complete.prefilter = none")
         traj = self._cloud(path, "map_trajectory")
         if len(traj) == 0:
             raise UserError(f"{path}: the recorded trajectory is empty")

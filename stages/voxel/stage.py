@@ -38,6 +38,8 @@ scene's radar map and ``lidar_filtered`` map (the RMap ground truth) are read fr
 ``lidar_map.parquet`` (``log_odds`` NaN: not published), with ``map_poses.parquet`` and
 ``map_trajectory.parquet``; the manifest's ``stats.map_set`` records the scene, split, environment and
 where ``lidar_filtered`` came from (``map`` or ``rebuilt``). Nothing is written when any file is bad.
+Log sequences write ``map_trajectory.parquet`` too: the radar's positions at the scans the radar map was built
+from (along ``trajectory``), so the band pre-filter and the voxel completion model run on every sequence.
 
 A log without ground truth (radar + IMU only) cannot give the paper's maps: with ``trajectory =
 "groundtruth"`` the stage is skipped with that reason (``--set voxel.trajectory=odometry`` builds the radar
@@ -199,8 +201,13 @@ class VoxelStage(Stage):
             return interpolate_se3(t, gt_t, gt_xyz, gt_q)
 
         radar_poses, traj_path = (gt_poses, None) if p.trajectory == "groundtruth" else self._se2_poses(ctx, p, gt_xyz)
-        radar_map = self._radar_map(ctx, p, radar_model, calib["base_from_radar"], radar_poses, traj_path)
+        radar_map, sensor_xyz = self._radar_map(ctx, p, radar_model, calib["base_from_radar"], radar_poses, traj_path)
         lidar_map = self._lidar_map(ctx, p, model, calib, gt_poses)
+        # the positions the radar map was built along (the radar's, one per integrated scan): what the band
+        # pre-filter and the voxel completion model read, as for a map set's recorded trajectory
+        write_artifact({"x": sensor_xyz[:, 0], "y": sensor_xyz[:, 1], "z": sensor_xyz[:, 2]},
+                       ctx.output("map_trajectory.parquet"), "map_trajectory",
+                       metadata={"trajectory": p.trajectory, "frame": "radar sensor positions at the radar scans"})
 
         for kind, vmap in (("radar", radar_map), ("lidar", lidar_map)):
             xyz, lo = vmap.centres()
@@ -299,7 +306,7 @@ class VoxelStage(Stage):
 
     # -- radar ---------------------------------------------------------------------------------------
     def _radar_map(self, ctx: StageContext, p: VoxelParams, model: SensorModel, base_from_radar: F64,
-                   poses: Any, traj_path: Path | None = None) -> VoxelMap:
+                   poses: Any, traj_path: Path | None = None) -> tuple[VoxelMap, F64]:
         if p.radar_source == "filtered":
             tab = read_artifact(ctx.input("filter", "radar_filtered.parquet"), "radar_filtered",
                                 columns=["scan", "t_ns", "x", "y", "z"])
@@ -345,7 +352,7 @@ class VoxelStage(Stage):
                               "points_per_s": round(n_pts / dt, 1) if dt > 0 else None,
                               "scans_per_s": round(float(valid.sum()) / dt, 2) if dt > 0 else None,
                               "voxel_updates": vmap.n_updates}
-        return vmap
+        return vmap, np.ascontiguousarray(T_ws[valid, :3, 3], dtype=np.float64)
 
     # -- lidar ---------------------------------------------------------------------------------------
     def _lidar_map(self, ctx: StageContext, p: VoxelParams, model: SensorModel, calib: dict[str, F64],
