@@ -151,3 +151,19 @@ def test_elevation_spread_of_the_returns() -> None:
     s_off, s_on = np.std(off), np.std(on)
     assert s_on > s_off + 2.0, (s_off, s_on)
     assert np.sqrt(s_off**2 + 8.0**2) * 0.75 < s_on < np.sqrt(s_off**2 + 8.0**2) * 1.25, (s_off, s_on)
+
+
+SHARED_MAPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "coloradar_maps"
+
+
+@pytest.mark.skipif(not (SHARED_MAPS / "aspen_run0" / "lidar.parquet").is_file(), reason="shared maps absent")
+def test_a_registered_drift_twin_gets_the_variant(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The registry's ``twin`` reaches the world the runner and ``pipeline simulate`` simulate."""
+    from sources.simulated import twin_world_of
+
+    monkeypatch.setenv("RMAP_ROOT", str(SHARED_MAPS))
+    reg = load_registry()
+    drift, plain = twin_world_of(reg["coloradar_1_twin_drift"]), twin_world_of(reg["coloradar_1_twin"])
+    assert drift.params == variant_params("drift") and plain.params == TwinParams()
+    assert drift.spec.imu == variant_params("drift").imu and plain.spec.imu == {}
+    assert np.array_equal(drift.grid.occupied, plain.grid.occupied)  # same scene, same path
