@@ -324,7 +324,7 @@ def simulate(
         spec = None
     scene = simulated.twin_scene_of(world, spec.scene if spec is not None else None)
     if scene is not None:
-        target: Any = simulated.twin_world_for(world, scene)
+        target: Any = simulated.twin_world_for(world, scene, spec.twin if spec is not None else None)
     elif spec is not None and spec.world and simulated.world_file_missing(world):
         target = spec.world  # a registered sequence's name (sim_hallway_loop -> its world, hallway_loop)
     else:

@@ -45,6 +45,8 @@ class SequenceInfo:
     scene: str | None = None
     environment: str = ""
     split: str = ""
+    #: twins: a variant of the twin's sensor model, ``data/twins/<twin>.toml`` (``drift``); None: the defaults
+    twin: str | None = None
     #: explicit source path (``--source``)
     source: Path | None = None
     params: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -97,7 +99,8 @@ class SequenceInfo:
         return f"${recorded.ROOT_VAR}/{self.run or ''}"
 
     def simulated_path(self) -> Path:
-        return simulated.simulated_path(self.name, self.world, self.duration, self.seed, self.format, self.scene)
+        return simulated.simulated_path(self.name, self.world, self.duration, self.seed, self.format, self.scene,
+                                        self.twin)
 
     def map_root_or_none(self) -> Path | None:
         """The folder holding this map sequence's scene (either layout), or None."""

@@ -70,6 +70,34 @@ class RadarParams(_Params):
     tip_loss_db: float = Field(15.0, ge=0, description="loss of a line scatterer seen beyond its end (tip), dB")
     strong_rcs_spread_db: float = Field(3.0, ge=0, description="std of the once-drawn RCS of strong scatterers, dB")
     time_jitter: float = Field(0.001, ge=0, description="std of the scan period jitter, s")
+    # --- real-radar effects the physical model lacks in voxel worlds (issue 27; all off by default, so that
+    # every existing log stays bit-identical; the drifting ColoRadar twins turn them on, simulator/twin.py) ---
+    multipath_ghost_share: float = Field(0.0, ge=0, le=2, description="mean number of multipath ghosts per "
+                                         "detected scene point (Poisson per scan): each is the mirror image "
+                                         "of a detected point in the vertical plane through another detected "
+                                         "point (a wall the radar sees), a virtual static target behind it")
+    multipath_ghost_loss_db: float = Field(12.0, ge=0, description="SNR of a multipath ghost below its "
+                                           "source point's, dB")
+    doppler_outlier_share: float = Field(0.0, ge=0, le=1, description="share of reported scene points whose "
+                                         "Doppler is replaced by a uniform draw over the Doppler bins (moving "
+                                         "people, interference, cells whose Doppler belongs to another return)")
+    elevation_noise_deg: float = Field(0.0, ge=0, le=30, description="std of an extra error of each scene "
+                                       "point's elevation angle, deg (the 4-channel elevation estimate's "
+                                       "spread beyond the model's phase noise)")
+
+
+#: the RadarParams fields of issue 27's real-radar effects (all off by default)
+REALISM_FIELDS = ("multipath_ghost_share", "multipath_ghost_loss_db", "doppler_outlier_share", "elevation_noise_deg")
+
+
+def radar_dump(p: RadarParams) -> dict[str, Any]:
+    """``p.model_dump()`` without :data:`REALISM_FIELDS` when the effects are off (a sidecar's ``meta.json``
+    stays byte-identical to the one written before they existed)."""
+    out = p.model_dump()
+    if not (p.multipath_ghost_share or p.doppler_outlier_share or p.elevation_noise_deg):
+        for k in REALISM_FIELDS:
+            out.pop(k)
+    return out
 
 
 class LidarParams(_Params):

@@ -36,13 +36,18 @@ and the out-of-box configuration ``cfarCfg -1 0 2 8 4 3 0 15 1``, ``cfarCfg -1 1
 Clutter false alarms (sidelobes, interference: not modelled physically) are a Poisson number of points on
 the same grids with random Doppler and an SNR of the CFAR threshold plus an exponential of mean
 ``clutter_snr_scale_db``. The driver's field-of-view filter and the strongest-``max_points``
-cap come last. Each point's label and noise-free position come from the return that dominates its cell
+cap come last. Three effects of the real radar that voxel worlds (no mirror faces) otherwise lack, all off by
+default (every existing log is unchanged; the drifting ColoRadar twins turn them on): statistical multipath
+ghosts (:func:`multipath_ghosts`, ``multipath_ghost_share``), Doppler outliers (:func:`doppler_outliers`,
+``doppler_outlier_share``) and an extra elevation error (``elevation_noise_deg``, added to each detected
+cell's elevation angle before the position is formed); they come before clutter, the field-of-view filter
+and the cap. Each point's label and noise-free position come from the return that dominates its cell
 at the reported azimuth (``cell_scatterers`` counts the returns within 10 dB of the strongest in the cell).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -219,6 +224,75 @@ def steering(u: np.ndarray) -> np.ndarray:
                           axis=1)
 
 
+@dataclass(frozen=True)
+class Detections:
+    """A scan's detected points before clutter, the field-of-view filter and the cap (radar frame)."""
+
+    xyz: np.ndarray  # (n, 3) reported position
+    r: np.ndarray  # (n,) reported range (a range bin)
+    dop: np.ndarray  # (n,) reported Doppler (a Doppler bin), m/s
+    snr: np.ndarray  # (n,) dB
+    label: np.ndarray  # int8 (n,)
+    xyz_true: np.ndarray  # (n, 3)
+    n_cell: np.ndarray  # int16 (n,)
+
+    def concat(self, other: Detections) -> Detections:
+        return Detections(*(np.concatenate([a, b]).astype(a.dtype, copy=False)
+                            for a, b in zip(_arrays(self), _arrays(other), strict=True)))
+
+
+def _arrays(d: Detections) -> tuple[np.ndarray, ...]:
+    return d.xyz, d.r, d.dop, d.snr, d.label, d.xyz_true, d.n_cell
+
+
+def _doppler_bin(dop: np.ndarray, dv: float, n_d: int) -> np.ndarray:
+    """Doppler ``dop`` (m/s) as the radar reports it: the nearest bin, wrapped into [-n_d/2, n_d/2) bins."""
+    b = np.round(dop / dv).astype(np.int64)
+    return np.asarray(((b + n_d // 2) % n_d - n_d // 2) * dv)
+
+
+def multipath_ghosts(det: Detections, v_radar: np.ndarray, p: RadarParams, n_d: int,
+                     rng: np.random.Generator) -> Detections:
+    """Multipath ghosts for worlds without mirror faces (voxel maps): a Poisson number, with mean
+    ``multipath_ghost_share`` times the detected scene points, of first-order mirror images.
+
+    Each ghost takes a source point ``s`` and a mirror point ``q`` (both drawn uniformly among the detected
+    scene points) and reflects ``s`` in the vertical plane through ``q`` facing the radar (normal: ``q``'s
+    horizontal direction): the radar -> wall -> target path of a wall the radar sees. Only a source on the
+    radar's side of the plane (more than 5 cm) makes a ghost. The image is a virtual static target: its
+    range and Doppler (``-u . v``) are those of the image, on the range and Doppler bins; its SNR is the
+    source's less ``multipath_ghost_loss_db``. Label :data:`LABEL_GHOST`, noise-free position the image.
+    """
+    scene = np.nonzero(det.label != LABEL_CLUTTER)[0]
+    n_g = int(rng.poisson(p.multipath_ghost_share * len(scene))) if len(scene) >= 2 else 0
+    s = scene[rng.integers(0, len(scene), n_g)] if n_g else np.zeros(0, np.int64)
+    m = scene[rng.integers(0, len(scene), n_g)] if n_g else np.zeros(0, np.int64)
+    q = det.xyz[m]
+    qh = np.hypot(q[:, 0], q[:, 1])
+    nrm = np.zeros((len(m), 3))
+    nrm[:, :2] = q[:, :2] / np.maximum(qh, 1e-9)[:, None]
+    dist = ((det.xyz[s] - q) * nrm).sum(1)  # < 0: the source is on the radar's side of the wall
+    ok = (dist < -0.05) & (qh > 0.3)
+    s, nrm, dist = s[ok], nrm[ok], dist[ok]
+    img = det.xyz[s] - 2 * dist[:, None] * nrm
+    img_true = det.xyz_true[s] - 2 * ((det.xyz_true[s] - det.xyz[m[ok]]) * nrm).sum(1)[:, None] * nrm
+    r = np.linalg.norm(img, axis=1)
+    u = img / np.maximum(r, 1e-9)[:, None]
+    r_bin = np.round(r / p.range_resolution) * p.range_resolution
+    return Detections(xyz=u * r_bin[:, None], r=r_bin, dop=_doppler_bin(-(u @ v_radar), p.doppler_resolution, n_d),
+                      snr=det.snr[s] - p.multipath_ghost_loss_db, label=np.full(len(s), LABEL_GHOST, np.int8),
+                      xyz_true=img_true, n_cell=np.zeros(len(s), np.int16))
+
+
+def doppler_outliers(det: Detections, p: RadarParams, n_d: int, rng: np.random.Generator) -> Detections:
+    """``doppler_outlier_share`` of the scene points (not clutter) with a Doppler drawn uniformly over the bins."""
+    scene = np.nonzero(det.label != LABEL_CLUTTER)[0]
+    hit = scene[rng.random(len(scene)) < p.doppler_outlier_share]
+    dop = det.dop.copy()
+    dop[hit] = rng.integers(-(n_d // 2), n_d // 2, len(hit)) * p.doppler_resolution
+    return replace(det, dop=dop)
+
+
 def simulate_scan(scene: Scene, scat: Scatterers, p: RadarParams, index: int, t: float, origin: np.ndarray,
                   yaw: float, velocity: np.ndarray, rng: np.random.Generator) -> RadarScan:
     """One radar scan. ``origin`` and ``velocity`` (world) of the radar, ``yaw`` of its boresight (level mount)."""
@@ -294,6 +368,9 @@ def simulate_scan(scene: Scene, scat: Scatterers, p: RadarParams, index: int, t:
     contrib = (amp[pk] * pw)[:, None] * steer[pk]
     np.add.at(snap, pid, contrib)
     pc, _, wx, wz = angle_of_arrival(snap, p.n_azimuth_bins, p.multi_peak_ratio)
+    if p.elevation_noise_deg > 0:  # elevation spread beyond the phase noise (off by default: no draw)
+        el_m = np.arcsin(np.clip(wz, -1, 1)) + rng.normal(0.0, np.radians(p.elevation_noise_deg), len(wz))
+        wz = np.sin(np.clip(el_m, -np.pi / 2, np.pi / 2))
     rng_m = (cells[pc] // n_d) * dr
     dbin = cells[pc] % n_d
     dop_m = np.where(dbin >= n_d // 2, dbin - n_d, dbin) * dv
@@ -337,13 +414,20 @@ def simulate_scan(scene: Scene, scat: Scatterers, p: RadarParams, index: int, t:
     c_f2 = c_r**2 * (1 - c_wx**2 - c_wz**2)
     c_xyz = np.column_stack([np.sqrt(np.maximum(c_f2, 0)), c_r * c_wx, c_r * c_wz])
 
-    xyz_all = np.concatenate([pts_xyz[keep], c_xyz])
-    r_all = np.concatenate([rng_m[keep], c_r])
-    dop_all = np.concatenate([dop_m[keep], c_dop])
-    snr_out = np.concatenate([snr_m[keep], c_snr])
-    labels = np.concatenate([lab[keep], np.full(nc, LABEL_CLUTTER, np.int8)])
-    true_all = np.concatenate([t_xyz[keep], c_xyz])
-    n_cell_all = np.concatenate([n_in[keep], np.zeros(nc, np.int16)])
+    dets = Detections(xyz=pts_xyz[keep], r=rng_m[keep], dop=dop_m[keep], snr=snr_m[keep], label=lab[keep],
+                     xyz_true=t_xyz[keep], n_cell=n_in[keep])
+    if p.multipath_ghost_share > 0:
+        dets = dets.concat(multipath_ghosts(dets, v_radar, p, n_d, rng))
+    if p.doppler_outlier_share > 0:
+        dets = doppler_outliers(dets, p, n_d, rng)
+
+    xyz_all = np.concatenate([dets.xyz, c_xyz])
+    r_all = np.concatenate([dets.r, c_r])
+    dop_all = np.concatenate([dets.dop, c_dop])
+    snr_out = np.concatenate([dets.snr, c_snr])
+    labels = np.concatenate([dets.label, np.full(nc, LABEL_CLUTTER, np.int8)])
+    true_all = np.concatenate([dets.xyz_true, c_xyz])
+    n_cell_all = np.concatenate([dets.n_cell, np.zeros(nc, np.int16)])
 
     # the driver's field-of-view filter, then the strongest max_points, in range order
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -4,6 +4,8 @@ IMU (applied by :mod:`simulator.imu` to the true signal, before bias and noise):
 
 - scale factors and axis misalignment: ``m = (I + S + M) m_true`` with ``S = diag(scale)`` and ``M`` a
   small-angle misalignment with zero diagonal (each axis tilted towards the others);
+- fixed zero-rate offset (``gyro_bias``): the unit's own offset, the same in every run, added to the random
+  turn-on offset (``[imu] gyro_bias_sigma``, drawn per run) at the start of the bias random walk;
 - bias instability: a first-order Gauss-Markov bias ``b[k+1] = phi b[k] + sigma sqrt(1 - phi^2) w[k]``,
   ``phi = exp(-dt / tau)``, stationary with std ``sigma`` (the usual MEMS model of the flicker floor that
   datasheets quote as "bias instability"; the twins set ``sigma`` to the datasheet value), added to
@@ -41,6 +43,8 @@ Vec3 = tuple[float, float, float]
 class SensorErrors(_Params):
     """The ``[errors]`` table of a world file."""
 
+    gyro_bias: Vec3 = Field((0.0, 0.0, 0.0), description="fixed gyro zero-rate offset of the unit per axis, rad/s, "
+                            "added to the random turn-on offset of [imu] gyro_bias_sigma")
     gyro_scale: Vec3 = Field((0.0, 0.0, 0.0), description="gyro scale-factor error per axis")
     accel_scale: Vec3 = Field((0.0, 0.0, 0.0), description="accel scale-factor error per axis")
     gyro_scale_sigma: float = Field(0.0, ge=0, description="std of a per-run random gyro scale error per axis")
@@ -131,7 +135,8 @@ def mount_error(e: SensorErrors, rng: np.random.Generator) -> MountError:
 
 def rotate_points(points: np.ndarray, xyz_true: np.ndarray, m: MountError) -> tuple[np.ndarray, np.ndarray]:
     """A scan's structured points (fields x, y, z) and noise-free (n, 3) positions in the true radar frame."""
-    pts = points.copy()
+    pts = np.zeros(len(points), points.dtype)  # not points.copy(): that leaves the dtype's padding bytes
+    pts[:] = points                             # uninitialised (the bag's bytes would differ run to run)
     if len(pts):
         xyz = np.column_stack([pts["x"], pts["y"], pts["z"]])
         r = m.to_true_frame(xyz)

@@ -22,6 +22,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from simulator import rig
+from simulator.params import radar_dump
 from simulator.simulate import NS, Simulation, Window
 
 LABEL_NAMES = {0: "surface", 1: "clutter", 2: "ghost"}
@@ -100,7 +101,7 @@ class SidecarWriter:
             "seed": sim.seed,
             "epoch_ns": rig.EPOCH_S * NS,
             "gravity": [0.0, 0.0, -sim.imu_p.gravity],
-            "radar": sim.radar_p.model_dump(),
+            "radar": radar_dump(sim.radar_p),
             "lidar": sim.lidar_p.model_dump(),
             "imu": sim.imu_p.model_dump(),
             "rates_hz": {"radar": rig.RADAR_RATE_HZ, "lidar": rig.LIDAR_RATE_HZ, "imu": rig.IMU_RATE_HZ,

@@ -142,6 +142,8 @@ class Simulation:
         self.sweep = sweep
         self.n_windows = max(1, int(np.ceil(d / self.window - 1e-9)))
         self._bias0 = imu_model.initial_bias(self.imu_p, np.random.default_rng([self.seed, STREAM_IMU_BIAS]))
+        if any(self.errors.gyro_bias):  # the unit's fixed zero-rate offset ([errors] gyro_bias)
+            self._bias0[:3] += np.asarray(self.errors.gyro_bias, np.float64)
         self.radar_record_ns = self.radar_ns.copy()
         self.imu_record_ns = self.imu_ns.copy()
         if self.handheld is not None:
@@ -160,7 +162,10 @@ class Simulation:
         e, me = self.errors, self.mount_error
         if me is None and not e.bias_instability_active and not e.radar_time_offset_s:
             return None
-        out: dict[str, object] = {"settings": e.model_dump(), "radar_time_offset_s": e.radar_time_offset_s}
+        settings = e.model_dump()
+        if not any(e.gyro_bias):  # added later: sidecars of worlds without it stay byte-identical
+            settings.pop("gyro_bias")
+        out: dict[str, object] = {"settings": settings, "radar_time_offset_s": e.radar_time_offset_s}
         if me is not None:
             out["radar_mount_rpy_deg"] = [float(v) for v in me.rotation.as_euler("xyz", degrees=True)]
             out["radar_mount_offset_m"] = [float(v) for v in me.offset]

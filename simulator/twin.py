@@ -17,13 +17,18 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import tomllib
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
-from simulator.params import RadarParams
+from pipeline.errors import UserError
+from pipeline.paths import data_dir
+from simulator.params import ImuParams, RadarParams, make_params
 from simulator.path_trajectory import PathParams, PathTrajectory
+from simulator.sensor_errors import SensorErrors
 from simulator.voxel_scatterers import VoxelScatterers, VoxelScatterParams, build_voxel_scatterers
 from simulator.voxel_world import VoxelGrid, grid_from_points, voxel_scene
 from simulator.world import TrajectorySpec, World, WorldSpec
@@ -78,8 +83,46 @@ class TwinParams(BaseModel):
     scatter: VoxelScatterParams = Field(default_factory=VoxelScatterParams, description="radar scatterers")
     radar: dict[str, float] = Field(default_factory=lambda: dict(TWIN_RADAR),
                                     description="simulator.params.RadarParams overrides of the twin's radar")
-    errors: dict[str, float] = Field(default_factory=lambda: dict(COLORADAR_ERRORS),
-                                     description="simulator.sensor_errors.SensorErrors of the rig ({} for none)")
+    errors: dict[str, Any] = Field(default_factory=lambda: dict(COLORADAR_ERRORS),
+                                   description="simulator.sensor_errors.SensorErrors of the rig ({} for none)")
+    imu: dict[str, float] = Field(default_factory=dict, description="simulator.params.ImuParams overrides of the "
+                                                                    "rig's IMU ({}: the 3DM-GX5 defaults)")
+
+
+def twins_dir() -> Path:
+    """``data/twins/``: twin variants (``drift.toml``: the drifting twins' sensor model)."""
+    return data_dir() / "twins"
+
+
+def variant_file(variant: str) -> Path:
+    """The file of a twin variant; a one-line error naming it and the known ones when it does not exist."""
+    f = twins_dir() / f"{variant}.toml"
+    if not f.is_file():
+        known = ", ".join(sorted(p.stem for p in twins_dir().glob("*.toml"))) or "none"
+        raise UserError(f"twin variant '{variant}': {f} does not exist (known: {known})")
+    return f
+
+
+def variant_params(variant: str | None) -> TwinParams:
+    """The :class:`TwinParams` of a twin variant (``data/twins/<variant>.toml``), the defaults for None.
+
+    The file's ``[imu]`` and ``[errors]`` replace the twin defaults (3DM-GX5, :data:`COLORADAR_ERRORS`);
+    its ``[radar]`` is laid over :data:`TWIN_RADAR`. Other tables or keys are a one-line error."""
+    if variant is None:
+        return TwinParams()
+    f = variant_file(variant)
+    try:
+        doc = tomllib.loads(f.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{f}: invalid TOML ({exc})") from None
+    unknown = sorted(set(doc) - {"imu", "errors", "radar"})
+    if unknown:
+        raise UserError(f"{f}: unknown table(s) {unknown}; a twin variant has [imu], [errors] and [radar]")
+    make_params(ImuParams, doc.get("imu", {}), f"{f} [imu]")  # checked here: names the file and the key
+    make_params(SensorErrors, doc.get("errors", {}), f"{f} [errors]")
+    radar = dict(TWIN_RADAR) | doc.get("radar", {})
+    make_params(RadarParams, radar, f"{f} [radar]")
+    return TwinParams(radar=radar, errors=dict(doc.get("errors", {})), imu=dict(doc.get("imu", {})))
 
 
 @dataclass(frozen=True)
@@ -123,11 +166,14 @@ def twin_world(scene: str, map_points: np.ndarray, path: np.ndarray, map_file: P
     spec = WorldSpec(name=f"{scene}_twin", description=f"ColoRadar twin of {scene} (voxel map, recorded path)",
                      floor=sc.floor, ceiling=None, min_clearance=0.0,
                      # the loop is not used: the twin follows `traj`
-                     trajectory=TrajectorySpec(waypoints=wp), radar=dict(p.radar), errors=dict(p.errors))
+                     trajectory=TrajectorySpec(waypoints=wp), radar=dict(p.radar), errors=dict(p.errors),
+                     imu=dict(p.imu))
+    # the world text of a twin without IMU overrides stays as it was before ``imu`` existed (byte-identical logs)
+    dumped = p.model_dump_json(exclude={"imu"} if not p.imu else None)
     text = "# ColoRadar twin (simulator.twin): not a world file; what it was made from\n" + "".join(
         f"{k} = {json.dumps(v)}\n" for k, v in {
             "scene": scene, "map_file": str(map_file), "map_voxels": len(pts), "carved_voxels": int((~keep).sum()),
-            "path_samples": len(path), "duration_s": d, "params": p.model_dump_json(),
+            "path_samples": len(path), "duration_s": d, "params": dumped,
         }.items())
     return TwinWorld(spec=spec, scene=sc, path=Path(str(map_file) or scene), text=text, grid=grid, trajectory=traj,
                      params=p, duration=d)

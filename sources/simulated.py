@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.errors import UserError
-from pipeline.paths import cache_dir
+from pipeline.paths import cache_dir, data_dir
 from sources import mapset
 
 
@@ -36,14 +36,22 @@ def twin_fingerprint(scene: str) -> dict[str, Any]:
 
 
 def simulated_path(name: str, world: str | None, duration: float, seed: int, fmt: str,
-                   scene: str | None = None) -> Path:
-    """The cache path of a simulated sequence (its folder name hashes the spec and the simulator's code)."""
+                   scene: str | None = None, twin: str | None = None) -> Path:
+    """The cache path of a simulated sequence (its folder name hashes the spec and the simulator's code;
+    a twin variant adds its name and file hash)."""
     spec = json.dumps({"world": world, "duration": duration, "seed": seed, "format": fmt,
-                       **simulator_fingerprint(world or name), **(twin_fingerprint(scene) if scene else {})},
+                       **simulator_fingerprint(world or name), **(twin_fingerprint(scene) if scene else {}),
+                       **(variant_fingerprint(twin) if twin else {})},
                       sort_keys=True)
     digest = hashlib.sha256(spec.encode()).hexdigest()[:10]
     suffix = ".bag" if fmt == "bag" else ""
     return cache_dir() / "sequences" / f"{name}-{digest}" / f"{name}{suffix}"
+
+
+def variant_fingerprint(twin: str) -> dict[str, str]:
+    """Name and content hash of a twin variant's file (``data/twins/<twin>.toml``), or that it is missing."""
+    f = data_dir() / "twins" / f"{twin}.toml"
+    return {"twin": twin, "twin_file": hashlib.sha256(f.read_bytes()).hexdigest()[:12] if f.is_file() else "missing"}
 
 
 def twin_root(name: str, scene: str) -> Path:
@@ -61,7 +69,7 @@ def twin_root(name: str, scene: str) -> Path:
 
 def twin_world_of(spec: Any) -> Any:
     """The :class:`simulator.twin.TwinWorld` of a twin sequence (its scene read from ``$RMAP_ROOT``)."""
-    return twin_world_for(str(spec.name), str(spec.scene))
+    return twin_world_for(str(spec.name), str(spec.scene), getattr(spec, "twin", None))
 
 
 def twin_scene_of(world: str, registered_scene: str | None) -> str | None:
@@ -84,14 +92,16 @@ def world_file_missing(world: str) -> bool:
     return not Path(world).exists() and not (worlds_dir() / f"{world}.toml").is_file()
 
 
-def twin_world_for(name: str, scene: str) -> Any:
-    """The :class:`simulator.twin.TwinWorld` of ``scene`` (read from ``$RMAP_ROOT``; ``name`` for errors)."""
-    from simulator.twin import twin_world
+def twin_world_for(name: str, scene: str, twin: str | None = None) -> Any:
+    """The :class:`simulator.twin.TwinWorld` of ``scene`` (read from ``$RMAP_ROOT``; ``name`` for errors),
+    with the sensor model of variant ``twin`` (``data/twins/<twin>.toml``) when given."""
+    from simulator.twin import twin_world, variant_params
 
+    params = variant_params(twin)  # a bad variant file fails before the maps are read
     maps = mapset.read_map_set(twin_root(name, scene), scene)
     kind = "lidar" if maps.lidar is not None else "lidar_filtered"
     points = maps.lidar if maps.lidar is not None else maps.lidar_filtered
-    return twin_world(scene, points, maps.trajectory, map_file=maps.files.get(kind, ""))
+    return twin_world(scene, points, maps.trajectory, map_file=maps.files.get(kind, ""), params=params)
 
 
 def generate(spec: Any) -> Path:

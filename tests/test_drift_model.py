@@ -129,8 +129,9 @@ def _sim(errors: dict[str, object] | None, duration: float = 1.0) -> Simulation:
     return Simulation(w, duration, seed=4, workers=1)
 
 
-ALL_ZERO = {"gyro_scale": [0.0, 0.0, 0.0], "accel_scale": [0.0, 0.0, 0.0], "gyro_scale_sigma": 0.0,
-            "accel_scale_sigma": 0.0, "misalignment_sigma_rad": 0.0, "gyro_bias_instability": 0.0,
+ALL_ZERO = {"gyro_bias": [0.0, 0.0, 0.0], "gyro_scale": [0.0, 0.0, 0.0], "accel_scale": [0.0, 0.0, 0.0],
+            "gyro_scale_sigma": 0.0, "accel_scale_sigma": 0.0, "misalignment_sigma_rad": 0.0,
+            "gyro_bias_instability": 0.0,
             "accel_bias_instability": 0.0, "radar_time_offset_s": 0.0, "radar_mount_rpy_deg": [0.0, 0.0, 0.0],
             "radar_mount_sigma_deg": 0.0, "radar_mount_offset_m": [0.0, 0.0, 0.0], "radar_mount_offset_sigma_m": 0.0}
 
