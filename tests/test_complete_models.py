@@ -176,3 +176,17 @@ def test_simulated_sequences_run_only_the_configured_model(tmp_path: Path) -> No
     assert STAGE.models_to_run("simulated", CompleteParams(models=["voxel"])) == ["uppointr", "voxel"]
     assert "model_checkpoints_sha256" not in STAGE.key_material(SIM, p)  # the demo's cache key is as before
     assert set(STAGE.key_material(SEQ, p)["model_checkpoints_sha256"]) == {"voxel"}
+
+
+def test_top_views_show_both_models(runs: dict[str, Any], tmp_path: Path) -> None:
+    from stages.evaluate.rmap_results import MODEL_COLUMNS, load_scene_maps, plot_run_top_views
+
+    seq = tmp_path / "runs" / "rmap_arpg_lab_run0"
+    seq.mkdir(parents=True)
+    (seq / "voxel").symlink_to(runs["root"] / "voxel")
+    (seq / "complete").symlink_to(runs["both"])
+    maps = load_scene_maps(seq)
+    assert all(m in maps for m, _ in MODEL_COLUMNS)
+    np.testing.assert_array_equal(maps["completed_map_voxel"], _xyz(runs["voxel"] / "completed_map.parquet"))
+    fig = plot_run_top_views(tmp_path / "runs", tmp_path / "top.png", ("rmap_arpg_lab_run0",))
+    assert fig is not None and fig.stat().st_size > 10_000
