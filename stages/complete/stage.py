@@ -289,7 +289,7 @@ class CompleteStage(Stage):
         if not path.is_file():
             raise UserError(f"complete: {ctx.seq.name} has no recorded trajectory ({path} is missing; the voxel "
                             "model and the band pre-filter need map sequences rmap_*); set complete.model = uppointr "
-                            "and complete.prefilter = none")
+                            "and complete.prefilter = none, and leave voxel out of complete.models")
         traj = self._cloud(path, "map_trajectory")
         if len(traj) == 0:
             raise UserError(f"{path}: the recorded trajectory is empty")
