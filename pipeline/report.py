@@ -159,9 +159,9 @@ def uncertainty_curves(runs_dir: Path, seqs: Sequence[str]) -> dict[str, Any]:
 
 def write_figures(runs_dir: Path, records: Sequence[dict[str, Any]], out: Path) -> list[Path]:
     """Figures across sequences beside ``out`` (the evaluate stage's report draws them): Fig. 6 and Fig. 10
-    right from the slam stages' ``map_stats.parquet``."""
+    right from the slam stages' ``map_stats.parquet``; for map sequences the top views of the maps in the runs."""
     seqs = list(dict.fromkeys(str(r["seq"]) for r in records))
-    return stage_report().figures(records, out, uncertainty_curves(runs_dir, seqs))
+    return stage_report().figures(records, out, uncertainty_curves(runs_dir, seqs), runs_dir=runs_dir)
 
 
 def report_sequences(runs_dir: Path, spec: str) -> tuple[list[dict[str, Any]], list[str]]:

@@ -70,6 +70,8 @@ def test_voxel_model_writes_lattice_voxels_inside_the_band(tmp_path: Path) -> No
 
     _maps(tmp_path)
     params = CompleteParams(model="voxel", checkpoint=str(_ckpt(tmp_path)), tile=16)
+    assert STAGE.input_stages(params) == ("patches", "voxel")  # models = auto may add UpPoinTr
+    params = CompleteParams(model="voxel", models=["voxel"], checkpoint=str(_ckpt(tmp_path)), tile=16)
     assert STAGE.input_stages(params) == ("voxel",)
     ctx = _context(tmp_path, params)
     STAGE.run(ctx)

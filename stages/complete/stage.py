@@ -7,8 +7,13 @@ resolution: ``assembly = average`` (the paper's Sec. V, the mean of the points i
 voxel U-Net (``voxel_net.py``) predicts the occupancy of every voxel of the radar map's lattice inside the
 trajectory band, thresholded at the checkpoint's validation threshold; it needs the recorded trajectory
 (``map_trajectory.parquet``: a map set's recorded one, or the one a log's radar map was built along).
-``prefilter = band`` keeps only radar voxels inside the trajectory band (RMap's future work); ``auto``: on for the voxel model (trained so), off for UpPoinTr. torch is
-imported only inside :meth:`CompleteStage.run`, so the pipeline imports without the ``learn`` extra.
+``prefilter = band`` keeps only radar voxels inside the trajectory band (RMap's future work); ``auto``: on for
+the voxel model (trained so), off for UpPoinTr. ``models`` (issue 28 item 3) runs further models beside the
+configured one, each with its ``auto`` checkpoint, and writes their maps as ``completed_map_<model>.parquet``
+(``auto``: every model on map sequences ``rmap_*``, only the configured one elsewhere); with a recorded trajectory
+the stage also writes the band-filtered radar map (``radar_map_band.parquet``) for the evaluate stage's
+pre-filtered input row. torch is imported only inside :meth:`CompleteStage.run`, so the pipeline imports without
+the ``learn`` extra.
 """
 
 from __future__ import annotations
@@ -32,12 +37,25 @@ from stages.complete.voxel_grid import Band, in_band, trajectory_band
 if TYPE_CHECKING:
     from pipeline.sequences import SequenceInfo
 
+Model = Literal["uppointr", "voxel"]
+
 #: trained on the simulator: the default for simulated sequences
 DEFAULT_CHECKPOINT = "data/models/rmap_small.safetensors"
 #: trained on the real ColoRadar maps (RMap's train scenes): the default for every other sequence kind
 REAL_CHECKPOINT = "data/models/rmap_coloradar_small.safetensors"
 #: the voxel model, trained on the real ColoRadar maps (RMap's train scenes): every sequence kind
 VOXEL_CHECKPOINT = "data/models/rmap_voxel.safetensors"
+
+
+#: the completion models, in the order the tables list them
+MODELS: tuple[Model, ...] = ("uppointr", "voxel")
+#: the band-filtered radar map (written when the sequence has a recorded trajectory)
+BAND_FILE = "radar_map_band.parquet"
+
+
+def model_file(model: str) -> str:
+    """``completed_map_<model>.parquet``: a model's map when several ran."""
+    return f"completed_map_{model}.parquet"
 
 
 def default_checkpoint(kind: str, model: str = "uppointr") -> str:
@@ -51,8 +69,12 @@ def default_checkpoint(kind: str, model: str = "uppointr") -> str:
 class CompleteParams(StageParams):
     """Parameters of the `complete` stage."""
 
-    model: Literal["uppointr", "voxel"] = Field("uppointr", description="uppointr = the paper's patch network; "
-                                                "voxel = the per-voxel 3D U-Net on the map's lattice (issue 28)")
+    model: Model = Field("uppointr", description="uppointr = the paper's patch network; voxel = the per-voxel 3D "
+                         "U-Net on the map's lattice (issue 28); its map is completed_map.parquet")
+    models: list[Model] | Literal["auto"] = Field("auto", description="models run beside the configured one (each "
+                                                  "with its auto checkpoint), their maps written as "
+                                                  "completed_map_<model>.parquet for side-by-side tables; auto = "
+                                                  "every model on map sequences (rmap_*), only `model` elsewhere")
     prefilter: Literal["auto", "none", "band"] = Field("auto", description="radar pre-filter of the map input: "
                                                        "band = keep radar voxels within band_radius and "
                                                        "band_z_below..band_z_above of the recorded trajectory; "
@@ -120,12 +142,31 @@ class CompleteStage(Stage):
 
     def input_stages(self, params: StageParams) -> tuple[str, ...]:
         assert isinstance(params, CompleteParams)
-        return ("voxel",) if params.model == "voxel" else self.inputs
+        # models = auto may add UpPoinTr (map sequences), which reads the patches
+        wanted = [params.model, *(MODELS if params.models == "auto" else params.models)]
+        return self.inputs if "uppointr" in wanted else ("voxel",)
+
+    @staticmethod
+    def models_to_run(kind: str, params: CompleteParams) -> list[Model]:
+        """The configured model first, then the others of ``models`` (``auto``: all on map sequences)."""
+        extra: list[Model] = (list(MODELS) if kind == "rmap" else []) if params.models == "auto" else params.models
+        return [params.model, *(m for m in dict.fromkeys(extra) if m != params.model)]
+
+    @staticmethod
+    def model_checkpoint(params: CompleteParams, kind: str, model: str) -> Path:
+        """``checkpoint`` for the configured model, the ``auto`` one for the others."""
+        return resolve_checkpoint(params.checkpoint if model == params.model else "auto", kind, model)
 
     def key_material(self, seq: SequenceInfo, params: StageParams) -> dict[str, Any]:
         assert isinstance(params, CompleteParams)
         path = resolve_checkpoint(params.checkpoint, seq.kind, params.model)
-        return {"checkpoint_sha256": file_sha256(path) if path.exists() else "missing"}
+        out: dict[str, Any] = {"checkpoint_sha256": file_sha256(path) if path.exists() else "missing"}
+        others = self.models_to_run(seq.kind, params)[1:]
+        if others:
+            paths = {m: self.model_checkpoint(params, seq.kind, m) for m in others}
+            out["model_checkpoints_sha256"] = {m: file_sha256(q) if q.exists() else "missing"
+                                               for m, q in paths.items()}
+        return out
 
     def resolution(self, ctx: StageContext) -> float:
         p: CompleteParams = ctx.params
@@ -143,17 +184,57 @@ class CompleteStage(Stage):
         import torch
 
         from schemas import write_artifact
-        from stages.complete.checkpoint import load_checkpoint
-        from stages.complete.infer import complete_patches, resolve_device
+        from stages.complete.infer import resolve_device
 
         p: CompleteParams = ctx.params
         if p.threads is not None:
             torch.set_num_threads(p.threads)
         device = resolve_device(p.device)
-        ckpt = resolve_checkpoint(p.checkpoint, ctx.seq.kind, p.model)
-        if p.model == "voxel":
-            self._run_voxel(ctx, p, ckpt, device)
-            return
+        models = self.models_to_run(ctx.seq.kind, p)
+        # every model runs before anything is written: a failing one leaves no file behind
+        runs: dict[Model, tuple[F64, dict[str, Any]]] = {}
+        for m in models:
+            ckpt = self.model_checkpoint(p, ctx.seq.kind, m)
+            runs[m] = self._run_voxel(ctx, p, ckpt, device) if m == "voxel" else \
+                self._run_uppointr(ctx, p, ckpt, device)
+        band_map = self._band_radar(ctx, p)
+        res = self.resolution(ctx)
+
+        def write(pts: F64, counts: np.ndarray, name: str) -> None:
+            write_artifact({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "count": counts.astype(np.int32)},
+                           ctx.output(name), "completed_map")
+
+        for m, (pts, stats) in runs.items():
+            counts = stats.pop("_counts")
+            if m == p.model:
+                write(pts, counts, "completed_map.parquet")
+                ctx.recording.static_points("world/complete", pts, colors=height_colors(pts[:, 2]), radii=res / 2)
+                ctx.stats.update(stats)
+            if len(runs) > 1:
+                if m != p.model:
+                    write(pts, counts, model_file(m))
+                    ctx.recording.static_points(f"world/complete_{m}", pts, colors=height_colors(pts[:, 2]),
+                                                radii=res / 2)
+                ctx.stats.setdefault("models", {})[m] = {
+                    k: stats[k] for k in ("checkpoint", "model_size", "n_parameters", "n_points", "model_seconds",
+                                          "wall_seconds", "prefilter", "n_patches", "device") if k in stats}
+                ctx.stats["models"][m]["file"] = "completed_map.parquet" if m == p.model else model_file(m)
+        if band_map is not None:
+            write(band_map, np.ones(len(band_map), np.int32), BAND_FILE)
+            ctx.stats["n_radar_band"] = len(band_map)
+
+    def _band_radar(self, ctx: StageContext, p: CompleteParams) -> F64 | None:
+        """The radar map inside the trajectory band (the pre-filtered input); None without a trajectory."""
+        if not (ctx.input_dirs["voxel"] / "map_trajectory.parquet").is_file():
+            return None
+        radar = self._cloud(ctx.input("voxel", "radar_map.parquet"), "radar_map")
+        return trajectory_band(radar, self._trajectory(ctx), self.band(p))
+
+    def _run_uppointr(self, ctx: StageContext, p: CompleteParams, ckpt: Path,
+                      device: Any) -> tuple[F64, dict[str, Any]]:
+        """UpPoinTr over every radar patch, merged and assembled at the voxel resolution (RMap Sec. III-D, V)."""
+        from stages.complete.checkpoint import load_checkpoint
+        from stages.complete.infer import complete_patches
         from stages.complete.voxel_checkpoint import checkpoint_kind
 
         if ckpt.is_file() and checkpoint_kind(ckpt) != "uppointr":
@@ -168,17 +249,15 @@ class CompleteStage(Stage):
                        if len(q.radar)]
         res = self.resolution(ctx)
         t0 = time.perf_counter()
-        with ctx.progress(len(patches), "completing patches") as advance:
+        with ctx.progress(len(patches), "completing patches (UpPoinTr)") as advance:
             result = complete_patches(model, meta, patches, device, p.batch_size, p.seed, advance)
         wall = time.perf_counter() - t0
         merged = np.concatenate(result.points) if result.points else np.zeros((0, 3))
         down, counts = assemble_map(merged, res, p.assembly)
         if not patches:
             ctx.warn("the patches artifact holds no radar patches; the completed map is empty")
-        write_artifact({"x": down[:, 0], "y": down[:, 1], "z": down[:, 2], "count": counts.astype(np.int32)},
-                       ctx.output("completed_map.parquet"), "completed_map")
-        ctx.recording.static_points("world/complete", down, colors=height_colors(down[:, 2]), radii=res / 2)
-        ctx.stats.update({
+        return down, {
+            "_counts": counts,
             "n_patches": len(patches),
             "n_points_predicted": len(merged),
             "n_points": len(down),
@@ -187,13 +266,14 @@ class CompleteStage(Stage):
             "device": str(device),
             "checkpoint": str(ckpt.relative_to(PROJECT_ROOT) if ckpt.is_relative_to(PROJECT_ROOT) else ckpt),
             "model_size": meta.train.get("config", {}).get("size", ""),
+            "n_parameters": int(sum(q.numel() for q in model.parameters())),
             "norm_scale_m": meta.norm_scale,
             "model_seconds": result.model_seconds,
             "seconds_per_patch": result.seconds_per_patch,
             "wall_seconds": wall,
             "model": "uppointr",
             "prefilter": p.prefilter if p.prefilter != "auto" else "none",
-        })
+        }
 
     @staticmethod
     def band(p: CompleteParams) -> Band:
@@ -210,16 +290,17 @@ class CompleteStage(Stage):
         if not path.is_file():
             raise UserError(f"complete: {ctx.seq.name} has no recorded trajectory ({path} is missing; the voxel "
                             "model and the band pre-filter need it); rerun `pipeline run voxel --seq "
-                            f"{ctx.seq.name} --force` or set complete.model = uppointr and complete.prefilter = none")
+                            f"{ctx.seq.name} --force`, or set complete.model = uppointr and complete.prefilter = "
+                            "none and leave voxel out of complete.models")
         traj = self._cloud(path, "map_trajectory")
         if len(traj) == 0:
             raise UserError(f"{path}: the recorded trajectory is empty")
         return traj
 
-    def _run_voxel(self, ctx: StageContext, p: CompleteParams, ckpt: Path, device: Any) -> None:
+    def _run_voxel(self, ctx: StageContext, p: CompleteParams, ckpt: Path,
+                   device: Any) -> tuple[F64, dict[str, Any]]:
         """The voxel model over the whole map (tiled, equal to one pass), thresholded (RMap Sec. III-D's task
         posed per voxel, issue 28)."""
-        from schemas import write_artifact
         from stages.complete.voxel_checkpoint import load_voxel_checkpoint
         from stages.complete.voxel_grid import LatticeError, key_centres, lattice_keys
         from stages.complete.voxel_net import (
@@ -265,10 +346,8 @@ class CompleteStage(Stage):
             pred = predict_tiles(model, keys, traj, res, meta.band, core=core, device=device, advance=advance)
         wall = time.perf_counter() - t0
         out = key_centres(completed_keys(pred, meta.threshold, keys if meta.union_radar else None), res)
-        write_artifact({"x": out[:, 0], "y": out[:, 1], "z": out[:, 2], "count": np.ones(len(out), np.int32)},
-                       ctx.output("completed_map.parquet"), "completed_map")
-        ctx.recording.static_points("world/complete", out, colors=height_colors(out[:, 2]), radii=res / 2)
-        ctx.stats.update({
+        return out, {
+            "_counts": np.ones(len(out), np.int32),
             "model": "voxel",
             "prefilter": "band" if prefilter else "none",
             "n_radar_voxels": len(keys),
@@ -286,7 +365,7 @@ class CompleteStage(Stage):
             "model_seconds": pred.model_seconds,
             "feature_seconds": pred.feature_seconds,
             "wall_seconds": wall,
-        })
+        }
 
 
 STAGE = CompleteStage()

@@ -100,7 +100,10 @@ def map_set_tables(records: Sequence[Mapping[str, Any]], sequences: Mapping[str,
         return []
     from stages.evaluate import rmap_tables as rt  # type: ignore[attr-defined, unused-ignore]
 
-    tables = [rt.table_iii(results), rt.table_iv(results)]
+    if rt.model_methods(results):  # several completion models ran (complete.models): one row per map
+        tables = [rt.table_iii_models(results), rt.table_iv_models(results)]
+    else:
+        tables = [rt.table_iii(results), rt.table_iv(results)]
     if any(r.a_test is not None for r in results):
         tables.append(rt.table_vi(results))
     tables.append(rt.table_i(results))
@@ -119,11 +122,21 @@ def to_markdown(records: Sequence[dict[str, Any]], title: str = "Comparison",
     return "\n".join(out).rstrip() + "\n"
 
 
-def write_figures(records: Sequence[dict[str, Any]], out: Path, curves: Mapping[str, Any]) -> list[Path]:
-    """Figures across sequences beside ``out``: Fig. 6 (AUC per feature count, one panel per sequence) and
-    Fig. 10 right (the slam map's median and 25-75 % uncertainty over time, one curve per sequence)."""
+def write_figures(records: Sequence[dict[str, Any]], out: Path, curves: Mapping[str, Any],
+                  runs_dir: Path | None = None) -> list[Path]:
+    """Figures across sequences beside ``out``: Fig. 6 (AUC per feature count, one panel per sequence),
+    Fig. 10 right (the slam map's median and 25-75 % uncertainty over time, one curve per sequence) and, with
+    ``runs_dir``, RMap's top views (``<out>_top.png``: input, UpPoinTr, voxel U-Net and lidar maps when both
+    models ran) of the figure's scenes among the records (``rmap_results.FIGURE_SEQS``)."""
     seqs = list(dict.fromkeys(str(r["seq"]) for r in records))
     written = []
+    if runs_dir is not None:
+        from stages.evaluate.rmap_results import FIGURE_SEQS, plot_run_top_views
+
+        shown = [s for s in FIGURE_SEQS if s in seqs]
+        if shown:
+            top = plot_run_top_views(runs_dir, out.with_name(out.stem + "_top.png"), shown)
+            written += [top] if top is not None else []
     with_auc = [s for s in seqs if any(r["seq"] == s and r["metric"] == "auc" and "@" in str(r["method"])
                                        for r in records)]
     if with_auc:
@@ -292,8 +305,9 @@ class EvaluationReport:
                  sequences: Mapping[str, Mapping[str, Any]] | None = None) -> str:
         return to_markdown(records, title, sequences)
 
-    def figures(self, records: Sequence[dict[str, Any]], out: Path, curves: Mapping[str, Any]) -> list[Path]:
-        return write_figures(records, out, curves)
+    def figures(self, records: Sequence[dict[str, Any]], out: Path, curves: Mapping[str, Any],
+                runs_dir: Path | None = None) -> list[Path]:
+        return write_figures(records, out, curves, runs_dir)
 
     def sweep_tables(self, records: Sequence[dict[str, Any]]) -> list[Table]:
         return sweep_tables(records)

@@ -21,9 +21,9 @@ from pipeline.errors import UserError
 from schemas import read_artifact
 from stages.evaluate.map_metrics import MapComparison, comparison_metrics, lr_ratio, nearest
 from stages.evaluate.rmap_figures import plot_top_views
-from stages.evaluate.rmap_tables import COMPLETED, F64, INPUT, LIDAR, SceneResult, scene_name
+from stages.evaluate.rmap_tables import BAND, COMPLETED, F64, INPUT, LIDAR, MODEL_PREFIX, SceneResult, scene_name
 
-MAP_METHODS = (INPUT, COMPLETED, LIDAR)
+MAP_METHODS = (INPUT, COMPLETED, LIDAR, BAND)
 #: a metric of method ``lidar_map`` that marks rebuilt ground truth (1.0), if the evaluate stage writes it
 REBUILT_METRIC = "gt_rebuilt"
 
@@ -48,7 +48,7 @@ def read_map_metrics(path: Path) -> dict[str, dict[str, float]]:
     out: dict[str, dict[str, float]] = {}
     for method, metric, value in zip(t["method"].to_pylist(), t["metric"].to_pylist(), t["value"].to_pylist(),
                                      strict=True):
-        if method in MAP_METHODS:
+        if method in MAP_METHODS or method.startswith(MODEL_PREFIX):
             out.setdefault(method, {})[metric] = float(value)
     return out
 
@@ -110,13 +110,22 @@ def collect_scene_results(runs_dir: Path, seqs: Iterable[str] | None = None, reb
 
 
 def load_scene_maps(seq_dir: Path) -> dict[str, F64]:
-    """The maps of one run for the top-view figure: ``radar_map``, ``lidar_map`` and (when run) ``completed_map``."""
+    """The maps of one run for the top-view figure: ``radar_map``, ``lidar_map``, (when run) ``completed_map``
+    and, when the complete stage ran several models, ``completed_map_<model>`` for each (the configured model's
+    is the same array as ``completed_map``)."""
     seq_dir = Path(seq_dir)
     maps = {INPUT: _cloud(seq_dir / "voxel" / "radar_map.parquet", "radar_map"),
             LIDAR: _cloud(seq_dir / "voxel" / "lidar_map.parquet", "lidar_map")}
     cpath = seq_dir / "complete" / "completed_map.parquet"
     if cpath.is_file():
         maps[COMPLETED] = _cloud(cpath, "completed_map")
+    models = _manifest(seq_dir / "complete" / "manifest.json").get("stats", {}).get("models")
+    for model, info in (models.items() if isinstance(models, dict) else ()):
+        fname = info.get("file") if isinstance(info, dict) else None
+        path = seq_dir / "complete" / str(fname)
+        if isinstance(fname, str) and path.is_file():
+            maps[MODEL_PREFIX + model] = maps[COMPLETED] if fname == cpath.name and COMPLETED in maps else \
+                _cloud(path, "completed_map")
     return maps
 
 
@@ -140,11 +149,15 @@ def score_maps(scene: str, maps: Mapping[str, F64], rebuilt: bool = False, d: fl
 
 #: the three scenes of the top-view figure by default (one lab, one hallway, one outdoor scene)
 FIGURE_SEQS = ("rmap_arpg_lab_run0", "rmap_ec_hallways_run0", "rmap_outdoors_run0")
+#: the columns when both completion models ran (complete.models)
+MODEL_COLUMNS = ((INPUT, "input radar map"), (MODEL_PREFIX + "uppointr", "UpPoinTr"),
+                 (MODEL_PREFIX + "voxel", "voxel U-Net"), (LIDAR, "lidar map"))
 
 
 def plot_run_top_views(runs_dir: Path, path: Path, seqs: Sequence[str] = FIGURE_SEQS, z_max: float | None = None,
                        seed: int = 0) -> Path | None:
-    """Fig. 3-style top views (input, completed, lidar) of ``seqs`` that have voxel maps in ``runs_dir``.
+    """Fig. 3-style top views of ``seqs`` that have voxel maps in ``runs_dir``: input, completed, lidar; or,
+    when every shown scene has both models' maps, input, UpPoinTr, voxel U-Net, lidar (:data:`MODEL_COLUMNS`).
 
     Sequences without maps are left out with a warning; None (and a warning) when none has them.
     """
@@ -159,5 +172,8 @@ def plot_run_top_views(runs_dir: Path, path: Path, seqs: Sequence[str] = FIGURE_
     if not scenes:
         warnings.warn("no sequence of the top-view figure has maps; figure not written", stacklevel=2)
         return None
+    if all(all(m in maps for m, _ in MODEL_COLUMNS) for maps in scenes.values()):
+        return plot_top_views(path, scenes, "input radar map, UpPoinTr, voxel U-Net and lidar map (top view, colour: "
+                              "height)", columns=MODEL_COLUMNS, z_max=z_max, seed=seed)
     return plot_top_views(path, scenes, "input radar, completed and lidar maps (top view, colour: height)",
                           z_max=z_max, seed=seed)

@@ -12,6 +12,10 @@ Pure functions over per-scene results (:class:`SceneResult`, collected from run 
 - scenes whose ground truth was rebuilt from published patches are marked with a dagger.
 
 Map ``method`` names are DESIGN.md's: ``radar_map`` (the input), ``completed_map`` (ours), ``lidar_map``.
+When the complete stage ran several models (``complete.models``, issue 28 item 3) the evaluate stage also
+writes ``completed_map_<model>`` (one per model, the configured one included) and ``radar_map_band`` (the
+pre-filtered input); Tables III, IV and VI then have one row per map (:func:`table_iii_models`,
+:func:`table_iv_models`, :func:`table_vi`).
 """
 
 from __future__ import annotations
@@ -28,6 +32,10 @@ from stages.evaluate.tables import fmt, markdown
 
 F64 = npt.NDArray[np.float64]
 INPUT, COMPLETED, LIDAR = "radar_map", "completed_map", "lidar_map"
+BAND = "radar_map_band"
+MODEL_PREFIX = "completed_map_"
+#: row labels of the completion models (others: their name)
+MODEL_LABELS = {"uppointr": "UpPoinTr", "voxel": "voxel U-Net"}
 SCORE_KEYS = ("cd_l1", "cd_l2", "fscore_0.15")
 DDIST_KEYS = paper.DDIST_KEYS
 AXIS_KEYS = ("cd_l2", "cd_x", "cd_y", "cd_z")
@@ -145,6 +153,108 @@ def _ddist_note(pooled: bool) -> str:
             "probably pooled, which cannot be checked without its 3 absent scenes.")
 
 
+def model_methods(results: Iterable[SceneResult]) -> list[str]:
+    """The ``completed_map_<model>`` methods present, UpPoinTr and voxel first."""
+    found = {m for r in results for m in r.metrics if m.startswith(MODEL_PREFIX)}
+    order = [MODEL_PREFIX + m for m in MODEL_LABELS]
+    return [m for m in order if m in found] + sorted(found - set(order))
+
+
+def model_label(method: str) -> str:
+    """``completed_map_voxel`` -> ``voxel U-Net``; the input maps by their role."""
+    if method == INPUT:
+        return "input"
+    if method == BAND:
+        return "pre-filtered input"
+    name = method.removeprefix(MODEL_PREFIX)
+    return MODEL_LABELS.get(name, name)
+
+
+def map_rows(results: Sequence[SceneResult]) -> list[str]:
+    """The maps of the per-model tables: input, pre-filtered input (when written), then every model."""
+    return [INPUT, *([BAND] if any(BAND in r.metrics for r in results) else []), *model_methods(results)]
+
+
+def _model_cells(m: Mapping[str, float], seconds: float | None = None) -> list[str]:
+    return [fmt(m.get("cd_l1")), fmt(m.get("cd_l2")), fmt(m.get("fscore_0.15")), fmt(m.get("fscore_0.15_robust")),
+            ddist_cell([m.get(k, float("nan")) for k in DDIST_KEYS]), fmt(seconds, 1) if seconds is not None else "–"]
+
+
+def _paper_cells(s: paper.Scores | Mapping[str, float]) -> list[str]:
+    m = s.metrics() if isinstance(s, paper.Scores) else s
+    return [fmt(m.get("cd_l1")), fmt(m.get("cd_l2")), fmt(m.get("fscore_0.15")), "–",
+            ddist_cell([m.get(k, float("nan")) for k in DDIST_KEYS]), "–"]
+
+
+def _seconds(r: SceneResult, method: str) -> float | None:
+    v = r.get(method, "model_seconds")
+    return v if np.isfinite(v) else None
+
+
+def table_iii_models(results: Iterable[SceneResult]) -> Table:
+    """Table III with one row per map and scene (paper input, input, pre-filtered input, each model, paper
+    RMap), then the Overall block (means; network seconds summed)."""
+    res = _test_results(results)
+    found = list(res.values())
+    methods = map_rows(found)
+    headers = ["scene", "map", "CD-l1", "CD-l2", "F", "F robust", "D-Dist", "network [s]"]
+    rows = []
+    for scene, prow in paper.TABLE_III.items():
+        r = res.get(scene)
+        if r is None:
+            continue
+        label = _label(r, scene)
+        rows.append([label, "paper input", *_paper_cells(prow.input)])
+        for m in methods:
+            if m in r.metrics:
+                rows.append([label, model_label(m), *_model_cells(r.metrics[m], _seconds(r, m))])
+        rows.append([label, "paper RMap", *_paper_cells(prow.rmap)])
+    rows.append(["**Overall**", "paper input", *_paper_cells(paper.TABLE_III_OVERALL.input)])
+    pooled = True
+    for m in methods:
+        o, p_m = overall(found, m)
+        pooled = pooled and p_m
+        secs = [_seconds(r, m) for r in found if m in r.metrics]
+        total = float(sum(s for s in secs if s is not None)) if secs and all(s is not None for s in secs) else None
+        rows.append(["**Overall**", model_label(m), *_model_cells(o, total)])
+    rows.append(["**Overall**", "paper RMap", *_paper_cells(paper.TABLE_III_OVERALL.rmap)])
+    notes = _coverage_note(list(res), same_row=False)
+    if len(res) < len(paper.TEST_SCENES):
+        rows.append(["paper, same scenes", "paper input", *_paper_cells(_paper_mean([paper.TABLE_III[s].input
+                                                                                     for s in res]))])
+        rows.append(["paper, same scenes", "paper RMap", *_paper_cells(_paper_mean([paper.TABLE_III[s].rmap
+                                                                                    for s in res]))])
+        notes.append("'paper, same scenes': the mean of the paper's rows for the scenes we have.")
+    counts = {m: sum(m in r.metrics for r in found) for m in methods}
+    short = [f"{model_label(m)} {n}" for m, n in counts.items() if n < len(found)]
+    if short:
+        notes.append(f"maps present on fewer than all {len(found)} scenes (their Overall is over those): "
+                     f"{', '.join(short)}.")
+    notes += _rebuilt_note(found)
+    notes.append(_ddist_note(pooled))
+    notes.append("F: paper-exact (strict < 0.15 m in float64, the paper's convention); F robust: threshold 0.1 % "
+                 "below 0.15 m, so lattice ties one voxel away never count. network [s]: the completion network's "
+                 "seconds on this run's device (Overall: the total). Ground truth: lidar_filtered; CD-l1 in m, CD-l2 "
+                 "in m². Paper erratum: outdoors_run4 input F printed 0.0123, read 0.123.")
+    return Table("RMap Table III, one row per map: input, pre-filtered input and each completion model against the "
+                 "lidar map", headers, rows, notes)
+
+
+def table_iv_models(results: Iterable[SceneResult]) -> Table:
+    """Table IV with one row per map: overall CD-l2 and per-axis CD (eq. 7), the paper's two rows around ours."""
+    res = list(_test_results(results).values())
+    headers = ["map", "CD-l2", "CD^x", "CD^y", "CD^z"]
+    rows = [["paper input", *[fmt(paper.TABLE_IV["input"][k]) for k in AXIS_KEYS]]]
+    for m in map_rows(res):
+        o, _ = overall(res, m)
+        rows.append([model_label(m), *[fmt(o.get(k)) for k in AXIS_KEYS]])
+    rows.append(["paper RMap", *[fmt(paper.TABLE_IV["rmap"][k]) for k in AXIS_KEYS]])
+    notes = _coverage_note([r.scene for r in res]) + _rebuilt_note(res)
+    notes.append("m²; ours: mean over the test scenes of CD^x = mean_p (p^x - g_min(p)^x)² + "
+                 "mean_g (p_min(g)^x - g^x)² with 3D nearest neighbours, so CD^x + CD^y + CD^z = CD-l2.")
+    return Table("RMap Table IV, one row per map: Chamfer distance per axis", headers, rows, notes)
+
+
 def table_iii(results: Iterable[SceneResult]) -> Table:
     """Table III side by side: paper input | ours input | paper RMap | ours completed, Overall row last."""
     res = _test_results(results)
@@ -219,30 +329,51 @@ def table_vi(results: Iterable[SceneResult], a_values: Sequence[int] = (1, 2, 4,
             by_a.setdefault(float(r.a_test), []).append(r)
     a_all = sorted({float(a) for a in a_values} | set(by_a))
     headers = ["a_test", "source", "scenes", "CD-l1", "CD-l2", "F", "D-Dist", "total patches",
-               "inference [s]", "device"]
+               "inference [s]", "device", "parameters"]
     rows = []
     for a in a_all:
         prow = paper.TABLE_VI.get(int(a)) if float(a).is_integer() else None
         a_txt = fmt(a, 0) if float(a).is_integer() else fmt(a, 2)
         if prow is not None:
             rows.append([a_txt, "paper", "21", *_scores(prow.scores.metrics()), str(prow.patches),
-                         fmt(prow.inference_s, 0), "RTX 6000"])
+                         fmt(prow.inference_s, 0), "RTX 6000", "–"])
         rs = by_a.get(a, [])
-        if rs:
+        models = model_methods(rs)
+        if rs and models:  # one row per completion model (complete.models)
+            devices = sorted({r.device for r in rs if r.device})
+            for m in models:
+                mrs = [r for r in rs if m in r.metrics]
+                o, _ = overall(mrs, m)
+                patches = [r.get(m, "n_patches") for r in mrs]
+                secs = [r.get(m, "model_seconds") for r in mrs]
+                params = {r.get(m, "n_parameters") for r in mrs}
+                rows.append([a_txt, f"ours {model_label(m)}", str(len(mrs)), *_scores(o),
+                             str(int(sum(patches))) if all(np.isfinite(patches)) else "–",
+                             fmt(float(sum(secs)), 1) if all(np.isfinite(secs)) else "–", ", ".join(devices) or "–",
+                             _param_cell(params)])
+        elif rs:
             o, _ = overall(rs, COMPLETED)
             patches = [r.n_patches for r in rs if r.n_patches is not None]
             secs = [r.inference_s for r in rs if r.inference_s is not None]
             devices = sorted({r.device for r in rs if r.device})
             rows.append([a_txt, "ours", str(len(rs)), *_scores(o),
                          str(sum(patches)) if len(patches) == len(rs) else "–",
-                         fmt(sum(secs), 1) if len(secs) == len(rs) else "–", ", ".join(devices) or "–"])
+                         fmt(sum(secs), 1) if len(secs) == len(rs) else "–", ", ".join(devices) or "–",
+                         _param_cell({r.get(COMPLETED, "n_parameters") for r in rs})])
         elif prow is not None:
-            rows.append([a_txt, "ours", "0", *_nan_scores(), "–", "–", "–"])
+            rows.append([a_txt, "ours", "0", *_nan_scores(), "–", "–", "–", "–"])
     notes = ["Paper: AdaPoinTr trained with a_train = 16, one patch at a time on an RTX 6000, 21 test scenes. "
-             "Ours: the completed maps; patches t = floor(a n_R / N_R) per scene; inference = network seconds."]
+             "Ours: the completed maps; patches t = floor(a n_R / N_R) per scene; inference = network seconds; "
+             "parameters = the network's trainable parameter count. The voxel U-Net reads no patches (its row "
+             "does not depend on a_test)."]
     unique = {r.scene: r for rs in by_a.values() for r in rs}
     notes += _rebuilt_note(unique.values())
     return Table("RMap Table VI: completion at several a_test", headers, rows, notes)
+
+
+def _param_cell(values: Iterable[float]) -> str:
+    known = sorted({int(v) for v in values if np.isfinite(v)})
+    return ", ".join(f"{v:,}" for v in known) or "–"
 
 
 def table_i(results: Iterable[SceneResult]) -> Table:
@@ -285,8 +416,11 @@ def report(results: Sequence[SceneResult], sweep: Sequence[SceneResult] = (), fi
 
     ``figure``: a relative path of the top-view image (:func:`stages.evaluate.rmap_results.plot_run_top_views`).
     """
+    per_model = bool(model_methods(results))
     parts = ["## RMap on the ColoRadar map sets, side by side with the paper", "",
-             table_i(results).markdown(), table_iii(results).markdown(), table_iv(results).markdown()]
+             table_i(results).markdown(),
+             (table_iii_models(results) if per_model else table_iii(results)).markdown(),
+             (table_iv_models(results) if per_model else table_iv(results)).markdown()]
     if sweep:
         parts.append(table_vi(sweep).markdown())
     if figure:

@@ -525,15 +525,26 @@ class Evaluation:
             return
         maps = {"radar_map": cloud("voxel", "radar_map.parquet", "radar_map")}
         d = ctx.input_dirs.get("complete")
+        per_model = _complete_models(d) if d is not None else {}
+        if d is not None and (d / BAND_MAP).exists():  # the pre-filtered input (complete.prefilter = band)
+            maps[BAND_METHOD] = cloud("complete", BAND_MAP, "completed_map")
         if d is not None and (d / "completed_map.parquet").exists():
             maps["completed_map"] = cloud("complete", "completed_map.parquet", "completed_map")
         elif "complete" in ctx.input_dirs:
             ctx.warn("the complete stage's folder has no completed_map.parquet; only the radar map is scored")
+            per_model = {}
+        for model, fname in per_model.items():  # the other models of complete.models, each its own method
+            if fname != "completed_map.parquet":
+                maps[f"completed_map_{model}"] = cloud("complete", fname, "completed_map")
+        scored: dict[str, dict[str, float]] = {}
         for name, pts in maps.items():
-            m = map_metrics(pts, lidar, p.fscore_threshold)
+            scored[name] = {**map_metrics(pts, lidar, p.fscore_threshold), "lr_ratio": lr_ratio(len(lidar), len(pts))}
+        for model, fname in per_model.items():  # the configured model: the rows of completed_map, not scored twice
+            if fname == "completed_map.parquet":
+                scored[f"completed_map_{model}"] = dict(scored["completed_map"])
+        for name, m in scored.items():
             for k, v in m.items():
                 self.add("rmap", name, k, v)
-            self.add("rmap", name, "lr_ratio", lr_ratio(len(lidar), len(pts)))
         self.add("rmap", "lidar_map", "n_points", len(lidar))
         self._map_set_rows(ctx)
         self.note("rmap", f"against the lidar map ({len(lidar)} voxel centres); F-score at {p.fscore_threshold:g} m; "
@@ -556,9 +567,14 @@ class Evaluation:
                       " (not the authors' map file)")
         if "complete" in ctx.input_dirs:
             stats = _manifest(ctx.input_dirs["complete"]).get("stats", {})
-            for key in ("n_patches", "seconds_per_patch", "model_seconds"):
+            for key in ("n_patches", "seconds_per_patch", "model_seconds", "n_parameters"):
                 if isinstance(stats.get(key), int | float):
                     self.add("rmap", "completed_map", key, float(stats[key]))
+            models = stats.get("models")
+            for model, info in (models.items() if isinstance(models, dict) else ()):
+                for key in ("n_patches", "model_seconds", "n_parameters"):
+                    if isinstance(info, dict) and isinstance(info.get(key), int | float):
+                        self.add("rmap", f"completed_map_{model}", key, float(info[key]))
         if "patches" in ctx.input_dirs:
             a = _manifest(ctx.input_dirs["patches"]).get("params", {}).get("a")
             if isinstance(a, int | float):
@@ -590,6 +606,19 @@ def _anchor_of(odometry_file: Path) -> str:
 
     meta = pq.read_schema(odometry_file).metadata or {}
     return meta.get(b"anchor", b"").decode()
+
+
+#: the complete stage's band-filtered radar map and its method name in metrics.parquet
+BAND_MAP, BAND_METHOD = "radar_map_band.parquet", "radar_map_band"
+
+
+def _complete_models(stage_dir: Path) -> dict[str, str]:
+    """model -> map file of every model the complete stage ran (``stats.models``; empty when it ran one)."""
+    models = _manifest(stage_dir).get("stats", {}).get("models")
+    if not isinstance(models, dict):
+        return {}
+    return {str(m): str(info["file"]) for m, info in models.items()
+            if isinstance(info, dict) and isinstance(info.get("file"), str) and (stage_dir / info["file"]).is_file()}
 
 
 def _manifest(stage_dir: Path) -> dict[str, Any]:
