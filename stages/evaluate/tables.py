@@ -54,9 +54,9 @@ def ordered(names: Iterable[str], preferred: Sequence[str]) -> list[str]:
 
 
 #: the title of :func:`trajectory_table` (``report.md`` and ``pipeline report``)
-TRAJECTORY_TITLE = ("Trajectories (RICH-SLAM Table III): position RMSE [m] / yaw RMSE [deg]; \"<seq>: whole\" "
-                    "SE(2)-aligned on the whole trajectory (= evo_ape --align in the plane, the headline), "
-                    "\"<seq>: paper\" the paper's protocol (SE(2) on the first n_align matched frames)")
+TRAJECTORY_TITLE = ("Trajectories (RICH-SLAM Table III): position RMSE [m] / yaw RMSE [deg]; whole: SE(2) "
+                    "alignment on the whole trajectory (= evo_ape --align in the plane, the headline); paper: the "
+                    "paper's protocol, SE(2) alignment on the first N matched frames")
 
 
 def trajectory_table(records: Sequence[Record]) -> tuple[list[str], list[list[str]]]:
