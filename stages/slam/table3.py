@@ -256,8 +256,9 @@ def main(argv: list[str] | None = None) -> int:
             if drawn != a.alignment:
                 print("(no row has the whole-trajectory errors: the figure draws the paper's protocol)")
             tmp = a.figure.with_name(a.figure.name + ".tmp.png")
+            marks = "; black line: the paper's value, its protocol" if a.paper else ""
             title = (f"Table III, {TITLES[drawn][0].lower()}{TITLES[drawn][1:]}: yaw RMSE (bar: mean over seeds, "
-                     "dots: seeds; text: position RMSE" + ("; black line: the paper's value" if a.paper else "") + ")")
+                     f"dots: seeds; text: position RMSE{marks})")
             plot_table3(tmp, by_sequence(rows, alignment=drawn), paper=paper_marks(rows) if a.paper else None,
                         title=title)
             os.replace(tmp, a.figure)
