@@ -83,11 +83,14 @@ def build_tables(records: Sequence[dict[str, Any]], sequences: Mapping[str, Mapp
 
 
 def rich_table(title: str, headers: Sequence[str], rows: Sequence[Sequence[str]]) -> Table:
-    t = Table(title=title, title_justify="left")
+    """The table for the terminal; text printed as written (``[m]`` is a unit, not rich markup)."""
+    from rich.markup import escape
+
+    t = Table(title=escape(title), title_justify="left")
     for i, h in enumerate(headers):
-        t.add_column(h, justify="left" if i == 0 or h in ("sequence", "map", "method") else "right")
+        t.add_column(escape(h), justify="left" if i == 0 or h in ("sequence", "map", "method") else "right")
     for r in rows:
-        t.add_row(*r)
+        t.add_row(*map(escape, r))
     return t
 
 

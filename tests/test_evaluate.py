@@ -22,7 +22,13 @@ from stages.evaluate.occupancy import (
     split_scans_by_block,
 )
 from stages.evaluate.stage import STAGE, EvaluateParams, Evaluation
-from stages.evaluate.trajectory import evaluate_trajectory, interpolate_pose2d, umeyama_se2, wrap_angle
+from stages.evaluate.trajectory import (
+    evaluate_trajectory,
+    evaluate_trajectory_whole,
+    interpolate_pose2d,
+    umeyama_se2,
+    wrap_angle,
+)
 from tests.test_evaluate_fixtures import make_context, room_segments, write_stage, write_synthetic_run
 
 
@@ -53,6 +59,45 @@ def test_alignment_uses_only_the_first_frames() -> None:
     est[200:, 1] += 1.0  # a 1 m lateral jump after frame 200
     err = evaluate_trajectory(times, est, np.zeros(300), times, gt, np.zeros(300), n_align=100)
     assert err.pos_rmse_m == pytest.approx(np.sqrt(100 / 300), rel=1e-9)
+
+
+def _rot(th: float) -> np.ndarray:
+    return np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+
+
+def test_whole_alignment_recovers_the_frame_where_the_first_frames_cannot() -> None:
+    """A rotated, shifted, noisy copy of a path whose first 100 frames barely move (coloradar_1_twin's start):
+    the whole-trajectory alignment recovers the frame and leaves the noise, the first-100 one fits its rotation
+    to the noise and reports metres of error."""
+    rng = np.random.default_rng(11)
+    n, sigma = 600, 0.02
+    s = np.r_[np.linspace(0.0, 0.01, 100), np.linspace(0.01, 60.0, n - 100)]  # 1 cm in the first 100 frames
+    gt = np.stack([8.0 * np.sin(s / 8.0), 0.15 * s * np.cos(s / 5.0)], 1)
+    yaw_gt = np.unwrap(np.arctan2(*np.gradient(gt, axis=0)[:, ::-1].T))
+    th, tr = 1.1, np.array([3.0, -2.0])  # est = R^T (gt - tr): the estimate lives in a rotated, shifted frame
+    est = (gt - tr) @ _rot(th) + rng.normal(0.0, sigma, (n, 2))
+    yaw_est = wrap_angle(yaw_gt - th + rng.normal(0.0, np.radians(0.5), n))
+    times = np.arange(n, dtype=np.int64) * 100_000_000
+    whole = evaluate_trajectory_whole(times, est, yaw_est, times, gt, yaw_gt)
+    first = evaluate_trajectory(times, est, yaw_est, times, gt, yaw_gt, n_align=100)
+    assert whole.n_aligned == n and first.n_aligned == 100
+    assert whole.rotation_deg == pytest.approx(np.degrees(th), abs=0.05)
+    assert np.allclose(whole.translation, tr, atol=0.02)
+    # what is left is the noise: sqrt(2) sigma in position (3 parameters fitted on 600 pairs), 0.5 deg in yaw
+    assert whole.pos_rmse_m == pytest.approx(np.sqrt(2) * sigma, rel=0.1)
+    assert whole.yaw_rmse_deg == pytest.approx(0.5, rel=0.1)
+    assert abs(first.rotation_deg - np.degrees(th)) > 10.0  # fitted to 1 cm of motion under 2 cm of noise
+    assert first.pos_rmse_m > 20 * whole.pos_rmse_m and first.yaw_rmse_deg > 2 * whole.yaw_rmse_deg
+    # the whole-trajectory alignment minimises the position RMSE: any other rigid transform does worse
+    r, t = _rot(np.radians(whole.rotation_deg)), np.asarray(whole.translation)
+    for dth, dt in ((0.002, (0.0, 0.0)), (-0.002, (0.0, 0.0)), (0.0, (0.01, 0.0)), (0.0, (0.0, -0.01))):
+        moved = est @ (_rot(dth) @ r).T + t + np.asarray(dt)
+        assert np.sqrt(np.mean(np.sum((moved - gt) ** 2, 1))) > whole.pos_rmse_m
+    same = evaluate_trajectory(times, est, yaw_est, times, gt, yaw_gt, n_align=None)
+    assert same.pos_rmse_m == whole.pos_rmse_m
+    assert evaluate_trajectory(times, est, yaw_est, times, gt, yaw_gt, n_align=10 * n).pos_rmse_m == whole.pos_rmse_m
+    with pytest.raises(ValueError, match="n_align = 1"):
+        evaluate_trajectory(times, est, yaw_est, times, gt, yaw_gt, n_align=1)
 
 
 def test_ground_truth_interpolation_and_gaps() -> None:

@@ -74,3 +74,45 @@ def test_report_table_iii_adds_the_papers_rows_for_the_twins() -> None:
     assert paper["paper RICH-SLAM"] == ["–", "3.59 / 12.61"]
     _, rows = trajectory_table(recs[:2])  # no twin: no paper rows
     assert not any(r[0].startswith("paper ") for r in rows)
+
+
+def test_tables_put_the_whole_trajectory_alignment_first_and_the_papers_protocol_beside_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from stages.evaluate.tables import trajectory_table
+
+    recs = [{"seq": s, "method": "rich_slam", "metric": k, "value": v} for s in ("demo", "coloradar_1_twin")
+            for k, v in (("ate_pos_rmse_whole_m", 0.4), ("ate_yaw_rmse_whole_deg", 1.2), ("ate_pos_rmse_m", 6.4),
+                         ("ate_yaw_rmse_deg", 119.9), ("aligned_frames", 100.0))]
+    recs += [{"seq": "demo", "method": "groundtruth", "metric": k, "value": v}
+             for k, v in (("length_m", 40.0), ("duration_s", 60.0))]
+    headers, rows = trajectory_table(recs)
+    assert headers == ["method", "demo: whole", "demo: paper, first 100", "coloradar_1_twin: whole",
+                       "coloradar_1_twin: paper, first 100"]
+    by = {r[0]: r[1:] for r in rows}
+    assert by["rich_slam"] == ["0.40 / 1.20", "6.40 / 119.90"] * 2
+    assert by["length / duration"] == ["40.0 m, 60 s", "–", "–", "–"]
+    assert by["paper RICH-SLAM"] == ["–", "–", "–", "0.86 / 6.18"]  # the paper's numbers: under its protocol only
+
+    def row(seq: str, seed: int, whole: float, paper: float) -> dict[str, object]:
+        return {"seq": seq, "method": "rich_slam", "seed": seed, "config": "{}", "pos_rmse_m": paper,
+                "yaw_rmse_deg": 10 * paper, "pos_rmse_whole_m": whole, "yaw_rmse_whole_deg": 10 * whole}
+
+    jrows = [row("coloradar_1_twin", 0, 0.3, 6.3), row("coloradar_1_twin", 1, 0.5, 6.5)]
+    assert "| 0.40 ± 0.10 / 4.00 ± 1.00 (2) |" in table3.table(jrows, alignment="whole")
+    assert "| 6.40 ± 0.10 / 64.00 ± 1.00 (2) |" in table3.table(jrows)  # the protocol's, as before
+    md = table3.paper_table(jrows).splitlines()
+    assert md[0].startswith("| sequence | rich_slam, whole | rich_slam, paper | paper EKF-RIO |")
+    assert md[2].startswith("| CR 1 (coloradar_1_twin) | 0.40 ± 0.10 / 4.00 ± 1.00 (2) "
+                            "| 6.40 ± 0.10 / 64.00 ± 1.00 (2) | 3.26 / 79.53 |")
+    out = tmp_path / "t3.jsonl"
+    out.write_text("".join(json.dumps(r) + "\n" for r in jrows))
+    png = tmp_path / "t3.png"
+    assert table3.main(["--table", str(out), "--figure", str(png)]) == 0
+    printed = capsys.readouterr().out
+    assert printed.index("Whole-trajectory SE(2)") < printed.index("The paper's protocol") and png.exists()
+    rows_old = [{k: v for k, v in r.items() if "whole" not in k} for r in jrows]  # rows written before: protocol only
+    assert table3.table(rows_old, alignment="whole").count("\n") == 1  # no row has them: the header alone
+    out.write_text("".join(json.dumps(r) + "\n" for r in rows_old))
+    assert table3.main(["--table", str(out), "--figure", str(png)]) == 0
+    printed = capsys.readouterr().out
+    assert "Whole-trajectory" not in printed and "draws the paper's protocol" in printed

@@ -26,7 +26,7 @@ Table = tuple[str, list[str], list[list[str]]]
 
 #: (title, table builder name in stages.evaluate.tables, metric sections it reads)
 TABLES = (
-    ("Trajectories (RICH-SLAM Table III): position RMSE [m] / yaw RMSE [deg]", "trajectory_table", "trajectory"),
+    (tables.TRAJECTORY_TITLE, "trajectory_table", "trajectory"),
     ("Occupancy AUC at the slam stage's feature count (ground-truth poses, held-out scans)", "headline_auc_table",
      "mapping"),
     ("Occupancy AUC per number of map features (RICH-SLAM Fig. 6)", "auc_table", "mapping"),

@@ -53,30 +53,54 @@ def ordered(names: Iterable[str], preferred: Sequence[str]) -> list[str]:
     return [n for n in preferred if n in names] + sorted(n for n in names if n not in preferred)
 
 
+#: the title of :func:`trajectory_table` (``report.md`` and ``pipeline report``)
+TRAJECTORY_TITLE = ("Trajectories (RICH-SLAM Table III): position RMSE [m] / yaw RMSE [deg]; whole: SE(2) "
+                    "alignment on the whole trajectory (= evo_ape --align in the plane, the headline); paper: the "
+                    "paper's protocol, SE(2) alignment on the first N matched frames")
+
+
 def trajectory_table(records: Sequence[Record]) -> tuple[list[str], list[list[str]]]:
-    """Table III: rows are methods, columns sequences, cells 'position RMSE [m] / yaw RMSE [deg]'."""
+    """Table III: rows are methods, columns sequences, cells 'position RMSE [m] / yaw RMSE [deg]'.
+
+    Two columns a sequence when the records have the whole-trajectory errors (``ate_*_whole_*``): ``<seq>:
+    whole`` (SE(2) alignment on every matched frame, first: the headline) and ``<seq>: paper, first N`` (the
+    paper's protocol, ``ate_pos_rmse_m`` / ``ate_yaw_rmse_deg``); one, the paper's protocol, for records
+    written before them. The paper's own rows (ColoRadar twins) sit under the paper-protocol columns."""
     d = lookup(records)
     seqs = list(dict.fromkeys(str(r["seq"]) for r in records))
-    methods = ordered((m for (_, m, k, _) in d if k == "ate_pos_rmse_m"), TRAJECTORY_METHODS)
-    headers = ["method", *seqs]
+    methods = ordered((m for (_, m, k, _) in d if k in ("ate_pos_rmse_m", "ate_pos_rmse_whole_m")),
+                      TRAJECTORY_METHODS)
+    whole = {s for (s, _, k, _) in d if k == "ate_pos_rmse_whole_m"}
+    n_aligned = {s: {int(v) for (s2, _, k, _), v in d.items() if s2 == s and k == "aligned_frames"} for s in seqs}
+
+    def paper_header(s: str) -> str:
+        n = n_aligned[s]
+        return f"{s}: paper, first {min(n)}" if len(n) == 1 else f"{s}: paper"
+
+    # (sequence, alignment) per column: the whole trajectory first where the records have it
+    cols = [(s, a) for s in seqs for a in (("whole", "paper") if s in whole else ("paper",))]
+    headers = ["method", *(f"{s}: whole" if a == "whole" else paper_header(s) if s in whole else s for s, a in cols)]
+    keys = {"whole": ("ate_pos_rmse_whole_m", "ate_yaw_rmse_whole_deg"),
+            "paper": ("ate_pos_rmse_m", "ate_yaw_rmse_deg")}
     rows = []
     length = ["length / duration"]
-    for s in seqs:
+    for s, a in cols:
         L, T = d.get((s, "groundtruth", "length_m", 0)), d.get((s, "groundtruth", "duration_s", 0))
-        length.append(f"{L:.1f} m, {T:.0f} s" if L is not None and T is not None else "–")
+        length.append(f"{L:.1f} m, {T:.0f} s" if L is not None and T is not None and (a == "whole" or s not in whole)
+                      else "–")
     if any(c != "–" for c in length[1:]):
         rows.append(length)
     for m in methods:
         row = [m]
-        for s in seqs:
-            pos, yaw = d.get((s, m, "ate_pos_rmse_m", 0)), d.get((s, m, "ate_yaw_rmse_deg", 0))
+        for s, a in cols:
+            pos, yaw = (d.get((s, m, k, 0)) for k in keys[a])
             row.append("–" if pos is None else f"{fmt(pos, 2)} / {fmt(yaw, 2)}")
         rows.append(row)
-    cols = [paper_sequence(s) for s in seqs]
-    if any(cols):  # the ColoRadar twins (or logs): the paper's own rows for the same sequences beside ours
+    paper_cols = [paper_sequence(s) if a == "paper" else None for s, a in cols]
+    if any(paper_cols):  # the ColoRadar twins (or logs): the paper's own rows for the same sequences beside ours
         for m in PAPER_METHODS:
             rows.append([f"paper {m}", *("–" if c is None else "{:.2f} / {:.2f}".format(*TABLE_III[c][m])
-                                         for c in cols)])
+                                         for c in paper_cols)])
     return headers, rows
 
 

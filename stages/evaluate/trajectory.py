@@ -1,8 +1,14 @@
-"""Trajectory accuracy (RICH-SLAM Table III): SE(2) alignment on the first matched frames, position and yaw RMSE.
+"""Trajectory accuracy (RICH-SLAM Table III): position and yaw RMSE after an SE(2) alignment, two ways.
 
 Pure functions on numpy arrays. Estimates are matched to ground truth by timestamp (ground truth
 interpolated linearly in position and in unwrapped yaw), a rigid SE(2) transform (Kabsch/Umeyama on
-xy, no scale) is estimated on the first ``n_align`` matched frames and applied to the whole estimate.
+xy, no scale) is estimated on the matched frames and applied to the whole estimate:
+
+- the paper's protocol (Table III): the transform is fitted on the first ``n_align`` (100) matched frames
+  (:func:`evaluate_trajectory` with ``n_align=100``); ill-posed when the rig barely moves during them;
+- the whole trajectory: fitted on every matched frame (:func:`evaluate_trajectory_whole`, ``n_align=None``),
+  the transform that minimises the position RMSE itself; it equals evo's ``evo_ape --align`` on the
+  trajectories projected to the plane (``tests/test_cli_run.py`` checks it on a TUM export).
 """
 
 from __future__ import annotations
@@ -88,16 +94,23 @@ class TrajectoryErrors:
 def evaluate_trajectory(
     t_est: npt.NDArray[np.int64], xy_est: F64, yaw_est: F64,
     t_gt: npt.NDArray[np.int64], xy_gt: F64, yaw_gt: F64,
-    n_align: int = 100, max_gap_ns: int = 250_000_000,
+    n_align: int | None = 100, max_gap_ns: int = 250_000_000,
 ) -> TrajectoryErrors:
-    """Position RMSE [m] and yaw RMSE [deg] after the SE(2) alignment on the first ``n_align`` matched frames."""
+    """Position RMSE [m] and yaw RMSE [deg] after the SE(2) alignment on the first ``n_align`` matched frames
+    (``None``: on all of them, the whole-trajectory alignment).
+
+    The alignment (R, t) minimises sum_i ||R p_i + t - q_i||^2 over the aligned pairs (Umeyama 1991, no
+    scale); the estimate's yaw is rotated by the angle of R. RMSE over all matched frames:
+    sqrt(mean ||R p_i + t - q_i||^2) and sqrt(mean wrap(yaw_i + angle(R) - yaw_gt_i)^2)."""
+    if n_align is not None and n_align < 2:
+        raise ValueError(f"n_align = {n_align}: the SE(2) alignment needs at least 2 frames")
     gxy, gyaw, ok = interpolate_pose2d(t_gt, xy_gt, yaw_gt, t_est, max_gap_ns)
     n = int(ok.sum())
     if n < 2:
         raise ValueError(f"only {n} estimated poses fall inside the ground truth's time span")
     exy, eyaw, gxy, gyaw, t = (np.asarray(xy_est, np.float64)[ok], np.asarray(yaw_est, np.float64)[ok],
                                gxy[ok], gyaw[ok], np.asarray(t_est)[ok])
-    k = min(n_align, n)
+    k = n if n_align is None else min(n_align, n)
     r, tr = umeyama_se2(exy[:k], gxy[:k])
     dtheta = float(np.arctan2(r[1, 0], r[0, 0]))
     axy = exy @ r.T + tr
@@ -107,6 +120,15 @@ def evaluate_trajectory(
     yaw = float(np.degrees(np.sqrt(np.mean(dyaw**2))))
     return TrajectoryErrors(pos, yaw, n, k, float(np.degrees(dtheta)), (float(tr[0]), float(tr[1])),
                             axy, ayaw, gxy, gyaw, t)
+
+
+def evaluate_trajectory_whole(
+    t_est: npt.NDArray[np.int64], xy_est: F64, yaw_est: F64,
+    t_gt: npt.NDArray[np.int64], xy_gt: F64, yaw_gt: F64, max_gap_ns: int = 250_000_000,
+) -> TrajectoryErrors:
+    """Position RMSE [m] and yaw RMSE [deg] after the SE(2) alignment on every matched frame: the rigid
+    transform that minimises the position RMSE (evo's ``--align`` in the plane)."""
+    return evaluate_trajectory(t_est, xy_est, yaw_est, t_gt, xy_gt, yaw_gt, None, max_gap_ns)
 
 
 def anchored_errors(

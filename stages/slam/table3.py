@@ -7,12 +7,16 @@ finishes and skips the ones already there: stop it at any point and run the same
     pipeline run odometry --seq SEQ ...                       # ingest, filter, odometry (and ground truth)
     python -m stages.slam.table3 RUNS/SEQ [RUNS/SEQ ...] --methods odometry,fastslam_grid,rich_slam \\
         --seeds 0,1,2 --set n_particles=200 --out table3.jsonl
-    python -m stages.slam.table3 --table table3.jsonl         # the markdown table: mean, spread, seeds
+    python -m stages.slam.table3 --table table3.jsonl         # the markdown tables: mean, spread, seeds
     python -m stages.slam.table3 --table table3.jsonl --figure table3.png   # and the figure (one panel a sequence)
     python -m stages.slam.table3 --table table3.jsonl --paper               # the twins beside the paper's Table III
 
-Errors are position RMSE [m] / yaw RMSE [deg] after the SE(2) alignment on the first 100 matched frames
-(the evaluate stage's ``evaluate_trajectory``). ``--set`` takes the slam stage's parameters (JSON values).
+Errors are position RMSE [m] / yaw RMSE [deg] after an SE(2) alignment (the evaluate stage's
+``evaluate_trajectory``), two ways, both in every row: on the whole trajectory (``pos_rmse_whole_m``,
+``yaw_rmse_whole_deg``; equal to ``evo_ape --align`` in the plane; the headline table and the figure's
+default) and the paper's protocol, on the first 100 matched frames (``pos_rmse_m``, ``yaw_rmse_deg``; the
+paper's own rows are beside these). Rows written before the whole-trajectory errors have the protocol's
+only. ``--set`` takes the slam stage's parameters (JSON values).
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -35,7 +39,7 @@ from stages.evaluate.rich_slam_paper import (
     TABLE_III,
     paper_sequence,
 )
-from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, quat_to_yaw
+from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, evaluate_trajectory_whole, quat_to_yaw
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
 from stages.slam.methods import METHODS, OdometryMotion, domain_from_trajectory, run_method
@@ -46,6 +50,17 @@ F64 = npt.NDArray[np.floating[Any]]
 
 
 Truth = tuple[npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.float64]]
+
+#: how a row's errors were aligned: the whole trajectory, the paper's protocol (first 100 frames), none (anchored)
+Alignment = Literal["whole", "paper", "anchored"]
+#: the (position, yaw) keys of a row per alignment
+KEYS: dict[str, tuple[str, str]] = {"whole": ("pos_rmse_whole_m", "yaw_rmse_whole_deg"),
+                                    "paper": ("pos_rmse_m", "yaw_rmse_deg"),
+                                    "anchored": ("pos_rmse_anchored_m", "yaw_rmse_anchored_deg")}
+#: the title of each alignment's table
+TITLES = {"whole": "Whole-trajectory SE(2) alignment (= evo_ape --align in the plane)",
+          "paper": "The paper's protocol: SE(2) alignment on the first 100 matched frames",
+          "anchored": "Without alignment (anchored at the ground truth)"}
 
 
 def load_inputs(run_dir: Path, p: SlamParams
@@ -103,26 +118,32 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
             t0 = time.perf_counter()
             res = run_method(m, odo, samples, basis, cfg, s, motion=motion)
             est = np.asarray(res.poses, dtype=np.float64)
+            seconds = time.perf_counter() - t0
             e = evaluate_trajectory(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2], n_align=100)
+            w = evaluate_trajectory_whole(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
             row = {"seq": run_dir.name, "method": m, "seed": s, "config": config, "pos_rmse_m": e.pos_rmse_m,
-                   "yaw_rmse_deg": e.yaw_rmse_deg, "s_per_scan": (time.perf_counter() - t0) / len(odo),
+                   "yaw_rmse_deg": e.yaw_rmse_deg, "pos_rmse_whole_m": w.pos_rmse_m,
+                   "yaw_rmse_whole_deg": w.yaw_rmse_deg, "s_per_scan": seconds / len(odo),
                    "resamplings": res.resampled, "scans": len(odo)}
             if anchored:  # beside the Table III protocol: no alignment (every filter starts at the anchor)
                 row["pos_rmse_anchored_m"], row["yaw_rmse_anchored_deg"] = anchored_errors(
                     t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
             append_row(out, row)
-            print(f"{run_dir.name} {m} seed {s}: {e.pos_rmse_m:.3f} m / {e.yaw_rmse_deg:.2f} deg "
-                  f"({row['s_per_scan']:.3f} s/scan)", flush=True)
+            print(f"{run_dir.name} {m} seed {s}: whole {w.pos_rmse_m:.3f} m / {w.yaw_rmse_deg:.2f} deg, paper "
+                  f"protocol {e.pos_rmse_m:.3f} m / {e.yaw_rmse_deg:.2f} deg ({row['s_per_scan']:.3f} s/scan)",
+                  flush=True)
 
 
-def by_sequence(rows: Sequence[dict[str, Any]], anchored: bool = False
+def by_sequence(rows: Sequence[dict[str, Any]], anchored: bool = False, alignment: Alignment = "paper"
                 ) -> dict[str, dict[str, list[tuple[float, float]]]]:
     """``{sequence: {method: [(position RMSE, yaw RMSE) per seed]}}`` (odometry once): sequences in the rows'
     order, the ColoRadar twins last in the paper's column order (the table's and the figure's order).
 
-    ``anchored``: the errors without alignment (``pos_rmse_anchored_m``, ``yaw_rmse_anchored_deg``) of the rows
-    that have them (runs whose odometry is anchored at the ground truth), the others left out."""
-    keys = ("pos_rmse_anchored_m", "yaw_rmse_anchored_deg") if anchored else ("pos_rmse_m", "yaw_rmse_deg")
+    ``alignment``: the errors of the paper's protocol (``pos_rmse_m``, ``yaw_rmse_deg``), of the whole-trajectory
+    alignment (``pos_rmse_whole_m``, ``yaw_rmse_whole_deg``) or without alignment (``anchored``, or
+    ``anchored=True``: ``pos_rmse_anchored_m``, ``yaw_rmse_anchored_deg``, runs whose odometry is anchored at the
+    ground truth); rows without those keys are left out."""
+    keys = KEYS["anchored" if anchored else alignment]
     out: dict[str, dict[str, list[tuple[float, float]]]] = {}
     for r in rows:
         if keys[0] not in r:
@@ -144,11 +165,13 @@ def cell(seeds: Sequence[tuple[float, float]], method: str) -> str:
     return f"{v[:, 0].mean():.2f} ± {h[0]:.2f} / {v[:, 1].mean():.2f} ± {h[1]:.2f} ({len(v)})"
 
 
-def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = (), anchored: bool = False) -> str:
-    """Markdown: per method and sequence, mean position / yaw RMSE over seeds, +- half the range, seeds."""
-    d = by_sequence(rows, anchored)
+def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = (), anchored: bool = False,
+          alignment: Alignment = "paper") -> str:
+    """Markdown: per method and sequence, mean position / yaw RMSE over seeds, +- half the range, seeds; the
+    errors of one ``alignment`` (:func:`by_sequence`)."""
+    d = by_sequence(rows, anchored, alignment)
     seqs = list(d)
-    key = "pos_rmse_anchored_m" if anchored else "pos_rmse_m"
+    key = KEYS["anchored" if anchored else alignment][0]
     ms = list(dict.fromkeys([*methods, *(r["method"] for r in rows if key in r)]))
     lines = ["| method | " + " | ".join(seqs) + " |", "|---|" + "---|" * len(seqs)]
     for m in ms:
@@ -157,19 +180,27 @@ def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = (), anchored:
 
 
 def paper_table(rows: Sequence[dict[str, Any]]) -> str:
-    """Markdown, a line per sequence that Table III has (the ColoRadar twins): our methods' cells, then the
-    paper's rows for the same sequence (``stages.evaluate.rich_slam_paper``). Empty when none has one."""
+    """Markdown, a line per sequence that Table III has (the ColoRadar twins): our methods' cells under the
+    paper's protocol, then the paper's rows for the same sequence (``stages.evaluate.rich_slam_paper``). When
+    the rows have the whole-trajectory errors, those come first (``<method>, whole``) and the protocol's are
+    ``<method>, paper``. Empty when no sequence has a Table III column."""
     twins = [(col, s, cells) for s, cells in by_sequence(rows).items()  # already in the paper's order
              if (col := paper_sequence(s)) is not None]
     if not twins:
         return ""
+    whole = by_sequence(rows, alignment="whole")
     seen = dict.fromkeys(m for _, _, cells in twins for m in cells)
     ms = sorted(seen, key=lambda m: METHODS.index(m) if m in METHODS else len(METHODS))
-    head = ["sequence", *ms, *(f"paper {m}" for m in PAPER_METHODS)]
+    both = any(s in whole for _, s, _ in twins)
+    ours = [f"{m}, whole" for m in ms] + [f"{m}, paper" for m in ms] if both else ms
+    head = ["sequence", *ours, *(f"paper {m}" for m in PAPER_METHODS)]
     lines = ["| " + " | ".join(head) + " |", "|---|" + "---|" * (len(head) - 1)]
     for col, s, cells in twins:
         paper = [f"{p:.2f} / {y:.2f}" for p, y in (TABLE_III[col][m] for m in PAPER_METHODS)]
-        lines.append(f"| {col} ({s}) | " + " | ".join([*(cell(cells.get(m, []), m) for m in ms), *paper]) + " |")
+        mine = [cell(cells.get(m, []), m) for m in ms]
+        if both:
+            mine = [cell(whole.get(s, {}).get(m, []), m) for m in ms] + mine
+        lines.append(f"| {col} ({s}) | " + " | ".join([*mine, *paper]) + " |")
     return "\n".join(lines)
 
 
@@ -202,12 +233,18 @@ def main(argv: list[str] | None = None) -> int:
                     "Table III (a line per twin; in the figure, a mark at the paper's value of each method)")
     ap.add_argument("--anchored", action="store_true", help="with --table: also the errors without alignment "
                     "(rows of runs whose odometry is anchored at the ground truth)")
+    ap.add_argument("--alignment", choices=("whole", "paper"), default="whole", help="with --figure: the "
+                    "errors drawn (whole: the whole-trajectory alignment, where the rows have it; paper: the paper's "
+                    "protocol)")
     a = ap.parse_args(argv)
     if a.table:
         rows = [json.loads(line) for line in a.table.read_text().splitlines() if line.strip()]
-        print(table(rows))
+        has_whole = any(KEYS["whole"][0] in r for r in rows)
+        if has_whole:  # the headline first
+            print(f"{TITLES['whole']}:\n\n{table(rows, alignment='whole')}\n")
+        print(f"{TITLES['paper']}:\n\n{table(rows)}")
         if a.anchored:
-            print("\nWithout alignment (anchored at the ground truth):\n")
+            print(f"\n{TITLES['anchored']}:\n")
             print(table(rows, anchored=True) if any("pos_rmse_anchored_m" in r for r in rows)
                   else "(no row has errors without alignment)")
         if a.paper:
@@ -215,8 +252,15 @@ def main(argv: list[str] | None = None) -> int:
         if a.figure:
             from stages.evaluate.figures import plot_table3
 
+            drawn: Alignment = "whole" if a.alignment == "whole" and has_whole else "paper"
+            if drawn != a.alignment:
+                print("(no row has the whole-trajectory errors: the figure draws the paper's protocol)")
             tmp = a.figure.with_name(a.figure.name + ".tmp.png")
-            plot_table3(tmp, by_sequence(rows), paper=paper_marks(rows) if a.paper else None)
+            marks = "; black line: the paper's value, its protocol" if a.paper else ""
+            title = (f"Table III, {TITLES[drawn][0].lower()}{TITLES[drawn][1:]}: yaw RMSE (bar: mean over seeds, "
+                     f"dots: seeds; text: position RMSE{marks})")
+            plot_table3(tmp, by_sequence(rows, alignment=drawn), paper=paper_marks(rows) if a.paper else None,
+                        title=title)
             os.replace(tmp, a.figure)
             print(f"wrote {a.figure}")
         return 0
