@@ -66,6 +66,9 @@ class EkfConfig:
     velocity_sigma: float = 0.1
     use_estimator_covariance: bool = True
     gate_probability: float = 0.999
+    #: the clone update of schema v3 (inconsistent, kept for its test): the clone's covariance reduced as if its
+    #: mean were corrected too, while the increment is formed from the pose written at the last scan
+    smoothed_clone: bool = False
     zero_rate_update: bool = True
     zero_rate_sigma: float = 0.002
     zero_rate_min_scans: int = 5
@@ -258,11 +261,13 @@ class EkfRio:
         IKH = np.eye(15) - K @ H
         self.P = IKH @ self.P @ IKH.T + K @ Rm @ K.T
         self.P = 0.5 * (self.P + self.P.T)
-        # the clone is corrected too (its error is correlated with the measured state's): cov(dx+, dc) =
-        # (I - K H) C, cov(dc+) = Pc - (H C)^T S^-1 (H C); the clone's mean is not needed
-        HC = H @ self.C
-        self.Pc = self.Pc - HC.T @ np.linalg.solve(S, HC)
-        self.Pc = 0.5 * (self.Pc + self.Pc.T)
+        # the clone is the pose written at the last scan, never corrected afterwards: its error stays the
+        # filtered one (Pc fixed) and only the cross covariance moves, cov(dx+, dc) = (I - K H) C. (Reducing Pc
+        # by (H C)^T S^-1 (H C) would describe a clone whose mean is corrected too, i.e. a smoothed previous pose.)
+        if self.cfg.smoothed_clone:
+            HC = H @ self.C
+            self.Pc = self.Pc - HC.T @ np.linalg.solve(S, HC)
+            self.Pc = 0.5 * (self.Pc + self.Pc.T)
         self.C = IKH @ self.C
         self.p += dx[0:3]
         self.v += dx[3:6]
