@@ -22,6 +22,11 @@ mean specific force over the whole standstill, gyro bias = the mean rate, accele
 ``recover_after`` velocity updates in a row rejected by the gate, the velocity, attitude and accelerometer
 bias covariances are inflated (``recover_sigma_*``) and the update is tried again, so the filter follows
 the radar again instead of diverging silently; a non-finite state is re-initialised from the radar.
+
+Increment covariance: a clone of the error state at each scan (the pose written there, never corrected
+later) and, with ``actual_*`` noise set, a second covariance propagated with the actual noise and updated with
+the filter's own gain in Joseph form, ``(I - K H) P (I - K H)^T + K R K^T`` (the error covariance of a
+suboptimal filter): the estimate keeps the filter's noise, the covariance is that of its actual error.
 """
 
 from __future__ import annotations
@@ -109,7 +114,8 @@ class EkfResult:
     #: scans where the covariance was inflated after repeated rejections (or the state re-initialised)
     recovered: npt.NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     #: joint covariance of the pose errors (dp, dtheta) at scan s and at scan s-1, ``(S, 12, 12)``, the current
-    #: pose first (stochastic cloning, :meth:`EkfRio.clone`); zero up to the filter's first scan
+    #: pose first (stochastic cloning, :meth:`EkfRio.clone`; with ``actual_*`` noise set, the covariance analysis of
+    #: this filter under that noise); zero up to the filter's first scan
     pose_pair_cov: F64 = field(default_factory=lambda: np.zeros((0, 12, 12)))
     stats: dict[str, Any] = field(default_factory=dict)
 
