@@ -22,6 +22,11 @@ mean specific force over the whole standstill, gyro bias = the mean rate, accele
 ``recover_after`` velocity updates in a row rejected by the gate, the velocity, attitude and accelerometer
 bias covariances are inflated (``recover_sigma_*``) and the update is tried again, so the filter follows
 the radar again instead of diverging silently; a non-finite state is re-initialised from the radar.
+
+Increment covariance: a clone of the error state at each scan (the pose written there, never corrected
+later) and, with ``actual_*`` noise set, a second covariance propagated with the actual noise and updated with
+the filter's own gain in Joseph form, ``(I - K H) P (I - K H)^T + K R K^T`` (the error covariance of a
+suboptimal filter): the estimate keeps the filter's noise, the covariance is that of its actual error.
 """
 
 from __future__ import annotations
@@ -66,6 +71,15 @@ class EkfConfig:
     velocity_sigma: float = 0.1
     use_estimator_covariance: bool = True
     gate_probability: float = 0.999
+    #: the clone update of schema v3 (inconsistent, kept for its test): the clone's covariance reduced as if its
+    #: mean were corrected too, while the increment is formed from the pose written at the last scan
+    smoothed_clone: bool = False
+    #: the noise the increment covariance assumes (None: the filter's own): the covariance written is the error
+    #: covariance of this filter (its gains) when the IMU is this noisy and the ego-velocity covariance is scaled by
+    #: ``actual_velocity_cov_scale`` (a suboptimal-filter covariance analysis, Gelb 1974 ch. 7)
+    actual_accel_noise_density: float | None = None
+    actual_gyro_noise_density: float | None = None
+    actual_velocity_cov_scale: float = 1.0
     zero_rate_update: bool = True
     zero_rate_sigma: float = 0.002
     zero_rate_min_scans: int = 5
@@ -100,7 +114,8 @@ class EkfResult:
     #: scans where the covariance was inflated after repeated rejections (or the state re-initialised)
     recovered: npt.NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     #: joint covariance of the pose errors (dp, dtheta) at scan s and at scan s-1, ``(S, 12, 12)``, the current
-    #: pose first (stochastic cloning, :meth:`EkfRio.clone`); zero up to the filter's first scan
+    #: pose first (stochastic cloning, :meth:`EkfRio.clone`; with ``actual_*`` noise set, the covariance analysis of
+    #: this filter under that noise); zero up to the filter's first scan
     pose_pair_cov: F64 = field(default_factory=lambda: np.zeros((0, 12, 12)))
     stats: dict[str, Any] = field(default_factory=dict)
 
@@ -190,33 +205,64 @@ class EkfRio:
         #: the clone's own covariance (Roumeliotis & Burdick 2002)
         self.C = self.P.copy()
         self.Pc = self.P.copy()
+        #: the actual error covariance under the ``actual_*`` noise (same gains), with its clone; None: P itself
+        self._separate = (cfg.actual_accel_noise_density is not None or cfg.actual_gyro_noise_density is not None
+                          or cfg.actual_velocity_cov_scale != 1.0)
+        self._qt = q.copy()
+        if cfg.actual_accel_noise_density is not None:
+            self._qt[0:3] = cfg.actual_accel_noise_density ** 2
+        if cfg.actual_gyro_noise_density is not None:
+            self._qt[3:6] = cfg.actual_gyro_noise_density ** 2
+        self.Pt, self.Ct, self.Pct = self.P.copy(), self.P.copy(), self.P.copy()
 
     def clone(self) -> None:
         """Clone the error state (at a scan): the next :meth:`pose_pair_cov` is of the increment from here."""
         self.C = self.P.copy()
         self.Pc = self.P.copy()
+        self.Ct = self.Pt.copy()
+        self.Pct = self.Pt.copy()
 
     def pose_pair_cov(self) -> F64:
-        """Joint covariance of the pose errors ``(dp, dtheta)`` now and at the clone, ``(12, 12)``."""
+        """Joint covariance of the pose errors ``(dp, dtheta)`` now and at the clone, ``(12, 12)`` (the actual
+        error covariance when ``actual_*`` noise is set)."""
+        P, C, Pc = (self.Pt, self.Ct, self.Pct) if self._separate else (self.P, self.C, self.Pc)
         i = np.r_[0:3, 6:9]
         out = np.empty((12, 12))
-        out[:6, :6] = self.P[np.ix_(i, i)]
-        out[:6, 6:] = self.C[np.ix_(i, i)]
+        out[:6, :6] = P[np.ix_(i, i)]
+        out[:6, 6:] = C[np.ix_(i, i)]
         out[6:, :6] = out[:6, 6:].T
-        out[6:, 6:] = self.Pc[np.ix_(i, i)]
+        out[6:, 6:] = Pc[np.ix_(i, i)]
         return 0.5 * (out + out.T)
 
+    def set_gyro_bias_variance(self, var: float) -> None:
+        """The gyro-bias block of the covariance (filter and actual), cross terms dropped."""
+        for M in (self.P, self.Pt):
+            M[9:12, :] = 0.0
+            M[:, 9:12] = 0.0
+            M[9:12, 9:12] = np.eye(3) * var
+
     def set_noise(self, accel_noise_density: float, gyro_noise_density: float) -> None:
+        """Raise the noise densities to what a standstill showed (filter and actual: at least these)."""
         self._qc[0:3] = accel_noise_density ** 2
         self._qc[3:6] = gyro_noise_density ** 2
+        self._qt[0:3] = np.maximum(self._qt[0:3], accel_noise_density ** 2 if self.cfg.actual_accel_noise_density
+                                   is None else self._qt[0:3])
+        self._qt[3:6] = np.maximum(self._qt[3:6], gyro_noise_density ** 2 if self.cfg.actual_gyro_noise_density
+                                   is None else self._qt[3:6])
+
+    def raise_actual_noise(self, accel_noise_density: float, gyro_noise_density: float) -> None:
+        """The actual noise at least what a standstill measured (its std over sqrt(rate))."""
+        self._qt[0:3] = np.maximum(self._qt[0:3], accel_noise_density ** 2)
+        self._qt[3:6] = np.maximum(self._qt[3:6], gyro_noise_density ** 2)
 
     def inflate(self, sigma_v: float, sigma_attitude: float, sigma_accel_bias: float) -> None:
         """Recovery: velocity, attitude and accelerometer-bias variances at least these (cross terms dropped)."""
-        for sl, s in ((slice(3, 6), sigma_v), (slice(6, 9), sigma_attitude), (slice(12, 15), sigma_accel_bias)):
-            d = np.maximum(np.diag(self.P)[sl], s * s)
-            self.P[sl, :] = 0.0
-            self.P[:, sl] = 0.0
-            self.P[sl, sl] = np.diag(d)
+        for M in (self.P, self.Pt):
+            for sl, s in ((slice(3, 6), sigma_v), (slice(6, 9), sigma_attitude), (slice(12, 15), sigma_accel_bias)):
+                d = np.maximum(np.diag(M)[sl], s * s)
+                M[sl, :] = 0.0
+                M[:, sl] = 0.0
+                M[sl, sl] = np.diag(d)
 
     def finite(self) -> bool:
         return bool(np.isfinite(self.p).all() and np.isfinite(self.v).all() and np.isfinite(self.R).all()
@@ -243,8 +289,13 @@ class EkfRio:
         idx = np.arange(3, 15)
         P[idx, idx] += self._qc * dt
         self.P = 0.5 * (P + P.T)
+        if self._separate:
+            Pt = F @ self.Pt @ F.T
+            Pt[idx, idx] += self._qt * dt
+            self.Pt = 0.5 * (Pt + Pt.T)
+            self.Ct = F @ self.Ct
 
-    def _correct(self, y: F64, H: F64, Rm: F64) -> bool:
+    def _correct(self, y: F64, H: F64, Rm: F64, scale_actual: bool = False) -> bool:
         S = H @ self.P @ H.T + Rm
         try:
             Sinv_y = np.linalg.solve(S, y)
@@ -258,12 +309,19 @@ class EkfRio:
         IKH = np.eye(15) - K @ H
         self.P = IKH @ self.P @ IKH.T + K @ Rm @ K.T
         self.P = 0.5 * (self.P + self.P.T)
-        # the clone is corrected too (its error is correlated with the measured state's): cov(dx+, dc) =
-        # (I - K H) C, cov(dc+) = Pc - (H C)^T S^-1 (H C); the clone's mean is not needed
-        HC = H @ self.C
-        self.Pc = self.Pc - HC.T @ np.linalg.solve(S, HC)
-        self.Pc = 0.5 * (self.Pc + self.Pc.T)
+        # the clone is the pose written at the last scan, never corrected afterwards: its error stays the
+        # filtered one (Pc fixed) and only the cross covariance moves, cov(dx+, dc) = (I - K H) C. (Reducing Pc
+        # by (H C)^T S^-1 (H C) would describe a clone whose mean is corrected too, i.e. a smoothed previous pose.)
+        if self.cfg.smoothed_clone:
+            HC = H @ self.C
+            self.Pc = self.Pc - HC.T @ np.linalg.solve(S, HC)
+            self.Pc = 0.5 * (self.Pc + self.Pc.T)
         self.C = IKH @ self.C
+        if self._separate:  # the same gain on the actual error: Joseph form with the actual measurement noise
+            Rt = Rm * self.cfg.actual_velocity_cov_scale if scale_actual else Rm
+            self.Pt = IKH @ self.Pt @ IKH.T + K @ Rt @ K.T
+            self.Pt = 0.5 * (self.Pt + self.Pt.T)
+            self.Ct = IKH @ self.Ct
         self.p += dx[0:3]
         self.v += dx[3:6]
         self.R = self.R @ so3_exp(dx[6:9])
@@ -282,7 +340,7 @@ class EkfRio:
         H[:, 6:9] = R_ir.T @ skew(v_body)
         H[:, 9:12] = R_ir.T @ skew(t_ir)
         r = np.asarray(rows, dtype=int)
-        return self._correct((v_radar - h)[r], H[r], cov[np.ix_(r, r)])
+        return self._correct((v_radar - h)[r], H[r], cov[np.ix_(r, r)], scale_actual=True)
 
     def update_zero_rate(self, gyro_mean: F64, sigma: float) -> bool:
         H = np.zeros((3, 15))
@@ -354,7 +412,8 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
         # the bias is the mean of `samples` rates: its std is the rate noise std over sqrt(samples)
         rate = still.samples / max((still.t1_ns - still.t0_ns) * 1e-9, 1e-9)
         g_sd = still.gyro_noise_density * np.sqrt(rate / max(still.samples, 1))
-        ekf.P[9:12, 9:12] = np.eye(3) * max(float(g_sd), 1e-4) ** 2
+        ekf.set_gyro_bias_variance(max(float(g_sd), 1e-4) ** 2)
+        ekf.raise_actual_noise(still.accel_noise_density, still.gyro_noise_density)
     else:
         R0 = gravity_aligned(f0)
         ekf = EkfRio(cfg, R0, R0 @ v_imu)
@@ -403,6 +462,7 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
                 ekf = EkfRio(cfg, R_re, R_re @ (R_ir @ vel[s]))
                 ekf.p = p_last
                 ekf.Pc, ekf.C = ekf.P.copy(), np.zeros((15, 15))  # the clone's error: independent of the new state
+                ekf.Pct, ekf.Ct = ekf.Pt.copy(), np.zeros((15, 15))
                 n_reinit += 1
                 out.recovered[s] = True
             ok = ekf.update_velocity(vel[s], c, rows, w_k, R_ir, t_ir)

@@ -90,9 +90,18 @@ class OdometryParams(StageParams):
     recover_sigma_accel_bias: float = Field(0.3, gt=0, description="accelerometer bias std after a recovery, m/s^2")
     reject_warn_share: float = Field(0.1, ge=0, le=1, description="warn when more than this share of velocity "
                                                                   "updates is rejected by the gate")
+    cov_accel_noise_density: float | None = Field(
+        2.0e-3, gt=0, description="increment covariance: the accelerometer white noise it assumes, m/s^2/sqrt(Hz) "
+                                  "(datasheet, low-cost MEMS: BMI088 ~190 ug/sqrt(Hz)); null: accel_noise_density")
+    cov_gyro_noise_density: float | None = Field(
+        2.5e-4, gt=0, description="increment covariance: the gyro white noise it assumes, rad/s/sqrt(Hz) (datasheet, "
+                                  "BMI088 0.014 deg/s/sqrt(Hz)); null: gyro_noise_density")
+    cov_velocity_scale: float = Field(
+        0.125, gt=0, description="increment covariance: factor on the ego-velocity covariance it assumes (chosen on "
+                               "the calibration runs calib_demo_drift and calib_hallway_loop_drift only)")
     increment_cov_scale: float = Field(
-        1.06, gt=0, description="factor on the EKF's increment covariance (the NEES check: chosen on the "
-                               "calibration runs calib_demo_drift and calib_hallway_loop_drift only)")
+        1.0, gt=0, description="factor on the increment covariance written (the NEES check: chosen on the "
+                               "calibration runs only)")
     bag_std_xy: float = Field(0.005, gt=0, description="source=bag: increment std on x and y per scan, m")
     bag_rel_trans: float = Field(0.05, ge=0, description="source=bag: increment std on x and y per metre, m/m")
     bag_std_yaw: float = Field(0.001, gt=0, description="source=bag: increment yaw std per scan, rad")
@@ -104,7 +113,7 @@ class OdometryStage(Stage):
     description = "radar-inertial odometry (EKF-RIO) at radar scan times"
     inputs = ("ingest", "filter")
     Params = OdometryParams
-    version = "3"
+    version = "4"
     outputs = ("odometry.parquet",)
 
     def input_stages(self, params: StageParams) -> tuple[str, ...]:
@@ -206,7 +215,8 @@ class OdometryStage(Stage):
             standstill_accel_change=p.standstill_accel_change, standstill_gyro_change=p.standstill_gyro_change,
             recover_after=p.recover_after, recover_sigma_v=p.recover_sigma_v,
             recover_sigma_attitude=np.radians(p.recover_sigma_attitude_deg),
-            recover_sigma_accel_bias=p.recover_sigma_accel_bias)
+            recover_sigma_accel_bias=p.recover_sigma_accel_bias, actual_accel_noise_density=p.cov_accel_noise_density,
+            actual_gyro_noise_density=p.cov_gyro_noise_density, actual_velocity_cov_scale=p.cov_velocity_scale)
         imu_from_radar = np.linalg.inv(base_from_imu) @ base_from_radar
         res = run_ekf(imu_t, acc, gyro, scan_t, vel, cov, dims, valid, imu_from_radar, cfg)
         if not res.initialized.any():
