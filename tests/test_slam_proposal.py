@@ -8,7 +8,7 @@ import pytest
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import sample_beams
 from stages.slam.methods import OdometryMotion, SlamConfig, domain_from_trajectory, run_method
-from stages.slam.rbpf import MotionNoise, Proposal, YawBias, propagate
+from stages.slam.rbpf import MotionNoise, Proposal, YawBias, propagate, weighted_mean_pose
 from stages.slam.se2 import compose, wrap_angle
 from stages.slam.synthetic import make_run
 
@@ -68,3 +68,36 @@ def test_bias_state_converges_to_a_constant_gyro_bias_and_bounds_the_heading_err
     assert abs(r.yaw_bias[-1] - bias) < 0.2 * bias  # converged within 20 %
     assert abs(np.mean(r.yaw_bias[-100:]) - bias) < 0.2 * bias
     assert err.max() < 0.3 * odo[-1] and err[-100:].max() < 3.0
+
+
+def test_weighted_mean_pose_is_circular_in_yaw_and_picks_a_one_hot_particle() -> None:
+    poses = np.array([[1.0, 2.0, np.pi - 0.1], [3.0, -2.0, -np.pi + 0.1], [0.0, 0.0, 0.5]])
+    np.testing.assert_allclose(weighted_mean_pose(poses, np.array([0.5, 0.5, 0.0])), [2.0, 0.0, np.pi], atol=1e-12)
+    np.testing.assert_allclose(weighted_mean_pose(poses, np.array([0.0, 0.0, 1.0])), poses[2], atol=1e-12)
+    w = np.array([0.2, 0.3, 0.5])
+    m = weighted_mean_pose(poses, w)
+    np.testing.assert_allclose(m[:2], w @ poses[:, :2])
+    # the circular mean: the weighted resultant's direction
+    assert abs(wrap_angle(m[2] - np.angle(np.sum(w * np.exp(1j * poses[:, 2]))))) < 1e-12
+
+
+def test_weighted_mean_stays_on_the_odometry_where_the_weights_say_nothing() -> None:
+    """Scans without beams give every particle the same weight: the filter then has no information beyond the
+    odometry, and the posterior mean stays on it (to the Monte Carlo error of the particles' mean), while the
+    largest-weight particle is one random particle of the cloud, as far off as the proposal's spread."""
+    n = 300
+    run = make_run(n, np.random.default_rng(2))
+    empty = sample_beams(np.zeros((0, 2)), np.zeros(2), 1.0, 5.0)
+    basis = hm.make_basis([30.0, 30.0], [0.0, 0.0], 16)
+    motion = OdometryMotion(np.tile(np.diag([0.01, 0.01, 0.004]) ** 2, (n, 1, 1)), np.full(n, 0.1))
+    cfg = SlamConfig(n_particles=100, workers=0, proposal="odometry_covariance", estimate="weighted_mean")
+    r = run_method("rich_slam", run.odometry, [empty] * n, basis, cfg, seed=0, motion=motion)
+    assert set(r.estimates) == {"best_per_scan", "final_best_history", "weighted_mean"}
+    np.testing.assert_array_equal(r.poses, r.estimates["weighted_mean"])
+    yaw = {k: np.abs(wrap_angle(v[:, 2] - run.odometry[:, 2])) for k, v in r.estimates.items()}
+    spread = 0.004 * np.sqrt(n)  # the particles' heading spread at the end (rad)
+    assert yaw["weighted_mean"][-1] < 0.35 * spread  # Monte Carlo error ~ spread / sqrt(100)
+    assert np.mean(yaw["best_per_scan"][-50:]) > 2 * np.mean(yaw["weighted_mean"][-50:])
+    # the paper's configuration keeps Algorithm 1's estimate whatever slam.estimate says
+    paper = run_method("rich_slam_paper", run.odometry, [empty] * n, basis, cfg, seed=0, motion=motion)
+    np.testing.assert_array_equal(paper.poses, paper.estimates["best_per_scan"])

@@ -229,6 +229,18 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
     assert odo2["pos_rmse_m"] == odo[0]["pos_rmse_m"]  # the protocol's numbers do not change
     md2 = table3.table([*rows, *rows2], anchored=True)
     assert md2.count("\n") == 3 and "(1 seed)" in md2  # only the anchored rows: one seed of the grid
+    # --estimates: the other trajectory estimates of the same filter run as rows of their own, resumable too
+    out3 = tmp_path / "t3_estimates.jsonl"
+    args3 = [str(tmp_path / "seq_a"), "--methods", "odometry,fastslam_grid", "--seeds", "0", "--out", str(out3),
+             "--set", "n_particles=4", "--set", "workers=0", "--estimates", "best_per_scan,weighted_mean"]
+    assert table3.main(args3) == 0 and table3.main(args3) == 0
+    rows3 = [json.loads(line) for line in out3.read_text().splitlines()]
+    assert [r["method"] for r in rows3] == ["odometry", "fastslam_grid, weighted_mean", "fastslam_grid"]
+    assert json.loads(rows3[1]["config"])["estimate"] == "weighted_mean"
+    best = next(r for r in rows2 if r["method"] == "fastslam_grid")
+    assert rows3[2]["pos_rmse_m"] == best["pos_rmse_m"]  # the configured estimate's row is the plain run's
+    with pytest.raises(SystemExit):
+        table3.main([*args3[:-1], "mean"])
     png = tmp_path / "t3.png"
     assert table3.main(["--table", str(out), "--figure", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not list(tmp_path.glob("*.tmp.png"))

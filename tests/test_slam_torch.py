@@ -92,6 +92,9 @@ def test_torch_filter_equals_numpy_filter_with_the_odometry_covariance_and_bias_
     np.testing.assert_allclose(np.asarray(ht.particles), np.asarray(ha.particles), atol=1e-12)
     np.testing.assert_allclose(ht.yaw_bias, ha.yaw_bias, atol=1e-12)
     assert np.all(np.isfinite(ha.yaw_bias)) and np.ptp(ha.yaw_bias) > 0
+    # the weighted-mean estimate (slam.estimate = weighted_mean) is the same on both backends
+    np.testing.assert_allclose(ht.mean_trajectory(), ha.mean_trajectory(), atol=1e-10)
+    assert np.abs(ha.mean_trajectory() - ha.best_trajectory()).max() > 0
 
 
 @pytest.fixture(scope="module")

@@ -41,6 +41,9 @@ METHODS: tuple[Method, ...] = ("odometry", "fastslam_grid", "rich_slam", "rich_s
 HILBERT_METHODS = ("rich_slam", "rich_slam_no_et", "rich_slam_mean_only", "rich_slam_refined", "rich_slam_paper")
 #: the paper's configuration (Sec. IV): the fixed GMapping-form proposal, no bias state, one global map
 PAPER_METHODS = ("rich_slam_paper",)
+#: how a filter's trajectory is read from its particles (``SlamConfig.estimate``)
+Estimate = Literal["best_per_scan", "final_best_history", "weighted_mean"]
+ESTIMATES: tuple[Estimate, ...] = ("best_per_scan", "final_best_history", "weighted_mean")
 ProposalKind = Literal["odometry_covariance", "gmapping"]
 #: methods whose particles are refined against their own maps before weighting (pose_refinement.py)
 REFINED_METHODS = ("rich_slam_refined",)
@@ -83,7 +86,9 @@ class SlamConfig:
     torch_threads: int = 1
     grid: GridModel = field(default_factory=GridModel)
     grid_resolution: float = 0.1
-    estimate: Literal["best_per_scan", "final_best_history"] = "best_per_scan"
+    #: the trajectory written: the largest-weight particle per scan (Algorithm 1 line 9), the final best
+    #: particle's history, or the weighted mean pose per scan; ``rich_slam_paper`` always takes the first
+    estimate: Estimate = "best_per_scan"
     #: the Laplace proposal of the refined method (``rich_slam_refined``); the others use eq. 21's
     refinement: PoseRefinement = field(default_factory=lambda: PoseRefinement(iterations=3))
     #: weight of the free samples' log terms against the endpoints' (1: the paper, eq. 23)
@@ -146,6 +151,8 @@ class MethodResult:
     form: str = ""  # map form of the Hilbert methods
     device: str = "cpu"  # where the Hilbert methods' filter ran (``cpu`` or ``cuda``)
     yaw_bias: F64 | None = None  # (T,) weighted mean of the particles' yaw-rate bias (bias state only)
+    #: every estimate of the trajectory from the same run (``poses`` is the configured one's)
+    estimates: dict[str, F64] = field(default_factory=dict)
 
 
 def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]:
@@ -215,7 +222,8 @@ def run_method(
         if on_step is not None:
             for _ in range(len(odometry)):
                 on_step()
-        return MethodResult(method, odometry.copy(), np.ones(len(odometry)), time.perf_counter() - t0)
+        return MethodResult(method, odometry.copy(), np.ones(len(odometry)), time.perf_counter() - t0,
+                            estimates={e: odometry.copy() for e in ESTIMATES})
     rng = np.random.default_rng(seed)
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; one of {', '.join(METHODS)}")
@@ -252,12 +260,14 @@ def run_method(
         finally:
             if isinstance(maps, ParallelHilbertMaps):
                 maps.close()
-    poses = h.final_best_history() if cfg.estimate == "final_best_history" else h.best_trajectory()
+    estimates = {"best_per_scan": h.best_trajectory(), "final_best_history": h.final_best_history(),
+                 "weighted_mean": h.mean_trajectory()}
+    poses = estimates["best_per_scan" if method in PAPER_METHODS else cfg.estimate]
     return MethodResult(
         method, poses, np.asarray(h.n_eff), time.perf_counter() - t0, int(np.sum(h.resampled)),
         np.asarray(h.particles), best_map.get("theta"), best_map.get("cov"),
         form if method in HILBERT_METHODS else "", device,
-        np.asarray(h.yaw_bias) if proposal.bias is not None else None,
+        np.asarray(h.yaw_bias) if proposal.bias is not None else None, estimates,
     )
 
 

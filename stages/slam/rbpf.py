@@ -700,6 +700,17 @@ class HilbertParticleMaps:
 # -- the filter ------------------------------------------------------------------------------------------
 
 
+def weighted_mean_pose(poses: F64, w: F64) -> F64:
+    """The weighted mean of particle poses ``(N, 3)``: x, y arithmetic, yaw circular (``atan2`` of the weighted
+    sines and cosines). The minimum-mean-square estimate of the pose under the particle approximation of
+    p(x_k | z_1:k, u_1:k) (eq. 20), where Algorithm 1 line 9 takes the largest-weight particle instead."""
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    w = np.asarray(w, dtype=np.float64).reshape(-1)
+    xy = w @ p[:, :2]
+    yaw = np.arctan2(w @ np.sin(p[:, 2]), w @ np.cos(p[:, 2]))
+    return np.array([xy[0], xy[1], yaw])
+
+
 @dataclass
 class StepResult:
     best: int
@@ -720,10 +731,16 @@ class FilterHistory:
     parents: list[npt.NDArray[np.int64]] = field(default_factory=list)
     #: weighted mean of the particles' yaw-rate bias per scan (nan without the bias state)
     yaw_bias: list[float] = field(default_factory=list)
+    #: the weighted mean pose per scan (:func:`weighted_mean_pose`, before resampling)
+    mean_pose: list[F64] = field(default_factory=list)
 
     def best_trajectory(self) -> F64:
         """Algorithm 1 line 9: the largest-weight particle's pose at every step."""
         return np.asarray(self.best_pose).reshape(-1, 3)
+
+    def mean_trajectory(self) -> F64:
+        """The posterior-mean pose at every step (:func:`weighted_mean_pose` of the weighted particles)."""
+        return np.asarray(self.mean_pose).reshape(-1, 3)
 
     def final_best_history(self) -> F64:
         """The trajectory history ``x_k*[1:T]`` of the final best particle (ancestry traced back)."""
@@ -807,6 +824,7 @@ class RBPF:
         self.history.particles.append(self.poses.copy())
         self.history.parents.append(self._parents)
         self.history.yaw_bias.append(self.proposal.bias_mean(w))
+        self.history.mean_pose.append(weighted_mean_pose(self.poses, w))
         if observer is not None:
             observer(self, best)
         resampled = n_eff < self.resample_threshold * self.n_particles

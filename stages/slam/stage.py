@@ -33,6 +33,7 @@ from stages.slam.methods import (
     HILBERT_METHODS,
     METHODS,
     REFINED_METHODS,
+    Estimate,
     Method,
     MethodResult,
     OdometryMotion,
@@ -140,9 +141,10 @@ class SlamParams(StageParams):
     resampling: Literal["systematic", "stratified", "multinomial"] = Field(
         "systematic", description="resampler (systematic = low variance)")
     resample_threshold: float = Field(0.5, gt=0, le=1, description="resample when N_eff < this * N_p (eq. 31)")
-    estimate: Literal["best_per_scan", "final_best_history"] = Field(
-        "best_per_scan", description="trajectory: the largest-weight particle at each scan (Algorithm 1) or the "
-        "final best particle's history")
+    estimate: Estimate = Field(
+        "best_per_scan", description="trajectory: the largest-weight particle at each scan (Algorithm 1), the "
+        "final best particle's history, or the weighted mean pose at each scan (x, y arithmetic, yaw circular; "
+        "stages/slam/README.md); rich_slam_paper: always the first")
     # -- FastSLAM grid baseline
     grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
     grid_l_occ: float = Field(0.85, gt=0, description="fastslam_grid log-odds added at an endpoint cell")

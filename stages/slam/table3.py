@@ -42,7 +42,7 @@ from stages.evaluate.rich_slam_paper import (
 from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, evaluate_trajectory_whole, quat_to_yaw
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.methods import METHODS, OdometryMotion, domain_from_trajectory, run_method
+from stages.slam.methods import ESTIMATES, METHODS, OdometryMotion, domain_from_trajectory, run_method
 from stages.slam.stage import SlamParams, beam_samples_by_scan, read_odometry_file
 from stages.slam.unit_study import read_run_folder
 
@@ -100,8 +100,16 @@ def append_row(out: Path, row: dict[str, Any]) -> None:
         os.fsync(f.fileno())
 
 
+def estimate_label(method: str, estimate: str, configured: str) -> str:
+    """A row's method name: the method itself for the configured estimate, ``"<method>, <estimate>"`` for the
+    others that :func:`run` writes from the same filter run (``--estimates``)."""
+    return method if estimate == configured or method == "odometry" else f"{method}, {estimate}"
+
+
 def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], overrides: dict[str, Any],
-        out: Path) -> None:
+        out: Path, estimates: Sequence[str] = ()) -> None:
+    """Append a row per (run, method, seed) not yet in ``out``; ``estimates``: also a row for each of these
+    trajectory estimates of the same filter run (``methods.ESTIMATES``; labelled by :func:`estimate_label`)."""
     p = SlamParams(**overrides)
     config = json.dumps(overrides, sort_keys=True)
     done = done_keys(out)
@@ -117,21 +125,28 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
         for m, s in todo:
             t0 = time.perf_counter()
             res = run_method(m, odo, samples, basis, cfg, s, motion=motion)
-            est = np.asarray(res.poses, dtype=np.float64)
             seconds = time.perf_counter() - t0
-            e = evaluate_trajectory(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2], n_align=100)
-            w = evaluate_trajectory_whole(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
-            row = {"seq": run_dir.name, "method": m, "seed": s, "config": config, "pos_rmse_m": e.pos_rmse_m,
-                   "yaw_rmse_deg": e.yaw_rmse_deg, "pos_rmse_whole_m": w.pos_rmse_m,
-                   "yaw_rmse_whole_deg": w.yaw_rmse_deg, "s_per_scan": seconds / len(odo),
-                   "resamplings": res.resampled, "scans": len(odo)}
-            if anchored:  # beside the Table III protocol: no alignment (every filter starts at the anchor)
-                row["pos_rmse_anchored_m"], row["yaw_rmse_anchored_deg"] = anchored_errors(
-                    t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
-            append_row(out, row)
-            print(f"{run_dir.name} {m} seed {s}: whole {w.pos_rmse_m:.3f} m / {w.yaw_rmse_deg:.2f} deg, paper "
-                  f"protocol {e.pos_rmse_m:.3f} m / {e.yaw_rmse_deg:.2f} deg ({row['s_per_scan']:.3f} s/scan)",
-                  flush=True)
+            extra = [e for e in estimates if e != cfg.estimate and m != "odometry"]
+            for est_name in [*extra, cfg.estimate]:  # the configured row last: it marks the run as done
+                label = estimate_label(m, est_name, cfg.estimate)
+                row_config = json.dumps({**overrides, "estimate": est_name}, sort_keys=True) if extra else config
+                if (run_dir.name, label, s, row_config) in done:
+                    continue
+                est = np.asarray(res.poses if est_name == cfg.estimate else res.estimates[est_name], np.float64)
+                e = evaluate_trajectory(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2], n_align=100)
+                w = evaluate_trajectory_whole(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
+                row = {"seq": run_dir.name, "method": label, "seed": s,
+                       "config": config if est_name == cfg.estimate else row_config, "pos_rmse_m": e.pos_rmse_m,
+                       "yaw_rmse_deg": e.yaw_rmse_deg, "pos_rmse_whole_m": w.pos_rmse_m,
+                       "yaw_rmse_whole_deg": w.yaw_rmse_deg, "s_per_scan": seconds / len(odo),
+                       "resamplings": res.resampled, "scans": len(odo)}
+                if anchored:  # beside the Table III protocol: no alignment (every filter starts at the anchor)
+                    row["pos_rmse_anchored_m"], row["yaw_rmse_anchored_deg"] = anchored_errors(
+                        t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
+                append_row(out, row)
+                print(f"{run_dir.name} {label} seed {s}: whole {w.pos_rmse_m:.3f} m / {w.yaw_rmse_deg:.2f} deg, "
+                      f"paper protocol {e.pos_rmse_m:.3f} m / {e.yaw_rmse_deg:.2f} deg ({row['s_per_scan']:.3f} "
+                      "s/scan)", flush=True)
 
 
 def by_sequence(rows: Sequence[dict[str, Any]], anchored: bool = False, alignment: Alignment = "paper"
@@ -227,6 +242,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--set", action="append", default=[], metavar="PARAM=JSON", help="a slam stage parameter")
     ap.add_argument("--out", type=Path, default=Path("table3.jsonl"))
+    ap.add_argument("--estimates", default="", help="comma-separated trajectory estimates (" + ", ".join(ESTIMATES)
+                    + ") written as extra rows '<method>, <estimate>' from the same filter run")
     ap.add_argument("--table", type=Path, help="print the markdown table of this results file and exit")
     ap.add_argument("--figure", type=Path, help="with --table: also draw it into this PNG")
     ap.add_argument("--paper", action="store_true", help="with --table: also the ColoRadar twins beside the paper's "
@@ -275,7 +292,11 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         ap.error(f"{missing[0]}: no odometry/odometry.parquet; run `pipeline run odometry --seq "
                  f"{missing[0].name}` first")
-    run(a.runs, a.methods.split(","), [int(s) for s in a.seeds.split(",")], overrides, a.out)
+    estimates = [e for e in a.estimates.split(",") if e]
+    unknown = [e for e in estimates if e not in ESTIMATES]
+    if unknown:
+        ap.error(f"--estimates: unknown {unknown[0]!r}; one of {', '.join(ESTIMATES)}")
+    run(a.runs, a.methods.split(","), [int(s) for s in a.seeds.split(",")], overrides, a.out, estimates)
     return 0
 
 

@@ -123,8 +123,11 @@ class TorchRBPF:
         self.logw = torch.log(torch.clamp_min(w, self._tiny))
         best_t = torch.argmax(w)
         n_eff_t = w.sum() ** 2 / torch.sum(w * w)
+        yaw = self.poses[:, 2]
+        mean_t = torch.stack([w @ self.poses[:, 0], w @ self.poses[:, 1],
+                              torch.atan2(w @ torch.sin(yaw), w @ torch.cos(yaw))])  # rbpf.weighted_mean_pose
         stats = torch.cat([n_eff_t[None], best_t[None].to(torch.float64), self.poses[best_t],
-                           self.maps.check()[None].to(torch.float64)]).cpu().numpy()  # the one sync per scan
+                           self.maps.check()[None].to(torch.float64), mean_t]).cpu().numpy()  # the one sync per scan
         if stats[5] != 0:
             raise np.linalg.LinAlgError(f"a particle map's Cholesky factor failed ({int(stats[5])}); "
                                         "try dtype = float64")
@@ -133,6 +136,7 @@ class TorchRBPF:
         h.best_pose.append(pose)
         h.best_index.append(best)
         h.n_eff.append(n_eff)
+        h.mean_pose.append(stats[6:9].copy())
         self._particles.append(self.poses.clone())
         self._parent_log.append(self._parents)
         h.yaw_bias.append(self.proposal.bias_mean(w.cpu().numpy()) if self.proposal.bias is not None else float("nan"))
