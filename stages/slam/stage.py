@@ -52,9 +52,9 @@ class SlamParams(StageParams):
 
     method: Method = Field("rich_slam", description="method whose trajectory is trajectory.parquet and whose "
                            "map is written (odometry, fastslam_grid, rich_slam, rich_slam_no_et, rich_slam_mean_only)")
-    methods: list[Method] = Field([m for m in METHODS if m != "rich_slam_paper"],
-                                  description="methods run and written as trajectory_<method>.parquet (the main "
-                                  "method always runs; rich_slam_paper equals rich_slam at the default proposal)")
+    methods: list[Method] = Field(list(METHODS), description="methods run and written as "
+                                  "trajectory_<method>.parquet (the main method always runs; rich_slam_paper is the "
+                                  "paper's configuration, the reference row)")
     n_particles: int = Field(200, ge=1, description="particles N_p (Sec. V-A2)")
     seed: int = Field(0, description="seed of the particle filter's random generator")
     # -- Hilbert-GP map (Table II)
@@ -129,11 +129,12 @@ class SlamParams(StageParams):
     motion_trans_per_rot: float = Field(0.06, ge=0, description="extra xy std per radian of odometry rotation "
                                         "(m/rad; GMapping's srt)")
     proposal: Literal["odometry_covariance", "gmapping"] = Field(
-        "gmapping", description="the filters' proposal noise: GMapping's fitted form (motion_*; the default until "
-        "the odometry-covariance proposal beats it, stages/slam/README.md) or the odometry's own per-scan increment "
-        "covariance (odometry.parquet cov_*); rich_slam_paper: always gmapping")
+        "odometry_covariance", description="the filters' proposal noise: the odometry's own per-scan increment "
+        "covariance (odometry.parquet cov_*; the default, chosen on the four calibration runs, stages/slam/README.md) "
+        "or GMapping's fitted form (motion_*); rich_slam_paper: always gmapping")
     yaw_bias: bool = Field(False, description="each particle carries a yaw-rate bias that corrects its odometry "
-                           "heading increment (not rich_slam_paper); off by default with the gmapping proposal")
+                           "heading increment (not rich_slam_paper); off by default: worse on the calibration runs "
+                           "whose odometry is good (stages/slam/README.md)")
     yaw_bias_sigma0: float = Field(0.005, gt=0, description="yaw-rate bias prior std, rad/s (the odometry's gyro "
                                    "bias prior, odometry.sigma_gyro_bias0)")
     yaw_bias_walk: float = Field(3.9e-6, ge=0, description="yaw-rate bias random walk, rad/s/sqrt(s) (3DM-GX5 "
@@ -142,7 +143,7 @@ class SlamParams(StageParams):
         "systematic", description="resampler (systematic = low variance)")
     resample_threshold: float = Field(0.5, gt=0, le=1, description="resample when N_eff < this * N_p (eq. 31)")
     estimate: Estimate = Field(
-        "best_per_scan", description="trajectory: the largest-weight particle at each scan (Algorithm 1), the "
+        "weighted_mean", description="trajectory: the largest-weight particle at each scan (Algorithm 1), the "
         "final best particle's history, or the weighted mean pose at each scan (x, y arithmetic, yaw circular; "
         "stages/slam/README.md); rich_slam_paper: always the first")
     # -- FastSLAM grid baseline
@@ -215,7 +216,7 @@ class SlamStage(Stage):
     description = "RICH-SLAM: RBPF with Hilbert-GP occupancy maps, and baselines"
     inputs = ("ingest", "filter", "odometry")
     Params = SlamParams
-    version = "2"
+    version = "3"
     outputs = ("trajectory.parquet", "map_posterior.parquet", "map_grid.parquet", "map_stats.parquet")
 
     def run(self, ctx: StageContext) -> None:
