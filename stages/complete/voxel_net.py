@@ -21,7 +21,7 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
-from stages.complete.voxel_grid import CHANNELS, F64, I64, Band, band_grid, voxel_features
+from stages.complete.voxel_grid import CHANNELS, F64, I64, Band, band_grid, trajectory_columns, voxel_features
 
 MODEL_KIND = "voxel_unet"
 
@@ -161,7 +161,7 @@ def auto_core(domain: Domain, max_voxels: int = MAX_PASS_VOXELS, tile: int = 256
     return tile
 
 
-@torch.no_grad()
+@torch.inference_mode()
 def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float, band: Band,
                   core: int | None = None, halo: int | None = None, device: str | torch.device = "cpu",
                   advance: Callable[[int], None] | None = None, origins: Sequence[tuple[int, int]] | None = None,
@@ -195,22 +195,24 @@ def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float
         out.n_tiles += 1
         t0 = time.perf_counter()
         cshape = (min(core, hi[0] - ox), min(core, hi[1] - oy), nz)
-        inband = band_grid((ox, oy, z0), cshape, trajectory, res, band)
         x0, y0 = max(ox - halo, dom.lo[0]), max(oy - halo, dom.lo[1])
         x1, y1 = min(ox + cshape[0] + halo, hi[0]), min(oy + cshape[1] + halo, hi[1])
         lo_in = np.array([x0, y0, z0])
         ishape = (x1 - x0, y1 - y0, nz)
+        dist, tz = trajectory_columns(lo_in, ishape[:2], trajectory, res)  # once for the band and the features
+        cx, cy = slice(ox - x0, ox - x0 + cshape[0]), slice(oy - y0, oy - y0 + cshape[1])
+        inband = band_grid((ox, oy, z0), cshape, trajectory, res, band, (dist[cx, cy], tz[cx, cy]))
         near = rk[np.all((rk >= lo_in) & (rk < lo_in + np.asarray(ishape)), axis=1)] if len(rk) else rk
         if not inband.any() or len(near) == 0:
             out.n_skipped += 1
             if advance:
                 advance(1)
             continue
-        feats = voxel_features(near, trajectory, lo_in, ishape, res)
+        feats = voxel_features(near, trajectory, lo_in, ishape, res, (dist, tz))
         out.feature_seconds += time.perf_counter() - t0
         t1 = time.perf_counter()
         x = torch.from_numpy(feats)[None].to(device).contiguous(memory_format=torch.channels_last_3d)
-        logit = model(x)[0, ox - x0:ox - x0 + cshape[0], oy - y0:oy - y0 + cshape[1], :]
+        logit = model(x)[0, cx, cy, :]
         prob = torch.sigmoid(logit).float().cpu().numpy()
         del x, logit
         out.model_seconds += time.perf_counter() - t1
