@@ -10,9 +10,12 @@ The channels are :data:`stages.complete.voxel_grid.CHANNELS` (radar map and traj
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -161,6 +164,33 @@ def auto_core(domain: Domain, max_voxels: int = MAX_PASS_VOXELS, tile: int = 256
     return tile
 
 
+#: glibc's mallopt parameters and their defaults (``man mallopt``)
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _GLIBC_DEFAULT = -1, -3, 128 * 1024
+
+
+@contextmanager
+def reuse_freed_memory(limit: int = 2**31 - 1) -> Iterator[None]:
+    """Inside: glibc keeps freed blocks of up to ``limit`` bytes for reuse instead of handing them back to the
+    system, so that the network's large activations (hundreds of MB each, allocated anew by every layer) do
+    not page-fault again on every layer (measured: a quarter of a forward pass's time on the shared machine);
+    afterwards the thresholds go back to glibc's initial values and the freed memory is returned
+    (``malloc_trim``). Values are unchanged. A no-op where the C library has no ``mallopt`` (not glibc)."""
+    name = ctypes.util.find_library("c")
+    libc = ctypes.CDLL(name) if name else None
+    if libc is None or not hasattr(libc, "mallopt") or not hasattr(libc, "malloc_trim"):
+        yield
+        return
+    libc.mallopt(_M_MMAP_THRESHOLD, ctypes.c_int(limit))
+    libc.mallopt(_M_TRIM_THRESHOLD, ctypes.c_int(limit))
+    try:
+        yield
+    finally:
+        libc.mallopt(_M_MMAP_THRESHOLD, ctypes.c_int(_GLIBC_DEFAULT))
+        libc.mallopt(_M_TRIM_THRESHOLD, ctypes.c_int(_GLIBC_DEFAULT))
+        libc.malloc_trim(ctypes.c_size_t(0))
+
+
+@reuse_freed_memory()
 @torch.inference_mode()
 def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float, band: Band,
                   core: int | None = None, halo: int | None = None, device: str | torch.device = "cpu",
