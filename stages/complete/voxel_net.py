@@ -166,28 +166,35 @@ def auto_core(domain: Domain, max_voxels: int = MAX_PASS_VOXELS, tile: int = 256
 
 #: glibc's mallopt parameters and their defaults (``man mallopt``)
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _GLIBC_DEFAULT = -1, -3, 128 * 1024
+_reuse_depth = 0
 
 
 @contextmanager
 def reuse_freed_memory(limit: int = 2**31 - 1) -> Iterator[None]:
     """Inside: glibc keeps freed blocks of up to ``limit`` bytes for reuse instead of handing them back to the
     system, so that the network's large activations (hundreds of MB each, allocated anew by every layer) do
-    not page-fault again on every layer (measured: a quarter of a forward pass's time on the shared machine);
-    afterwards the thresholds go back to glibc's initial values and the freed memory is returned
-    (``malloc_trim``). Values are unchanged. A no-op where the C library has no ``mallopt`` (not glibc)."""
+    not page-fault again and again; on leaving the outermost one, the thresholds go back to glibc's initial
+    values and the freed memory is returned (``malloc_trim``). Nested uses keep the outer one's heap (held
+    across the 18 test scenes: 4 scenes took 25 s instead of 34-36 s, 0.7 M page faults instead of 2.5-2.7 M).
+    Values are unchanged. A no-op where the C library has no ``mallopt`` (not glibc)."""
+    global _reuse_depth
     name = ctypes.util.find_library("c")
     libc = ctypes.CDLL(name) if name else None
     if libc is None or not hasattr(libc, "mallopt") or not hasattr(libc, "malloc_trim"):
         yield
         return
-    libc.mallopt(_M_MMAP_THRESHOLD, ctypes.c_int(limit))
-    libc.mallopt(_M_TRIM_THRESHOLD, ctypes.c_int(limit))
+    if _reuse_depth == 0:
+        libc.mallopt(_M_MMAP_THRESHOLD, ctypes.c_int(limit))
+        libc.mallopt(_M_TRIM_THRESHOLD, ctypes.c_int(limit))
+    _reuse_depth += 1
     try:
         yield
     finally:
-        libc.mallopt(_M_MMAP_THRESHOLD, ctypes.c_int(_GLIBC_DEFAULT))
-        libc.mallopt(_M_TRIM_THRESHOLD, ctypes.c_int(_GLIBC_DEFAULT))
-        libc.malloc_trim(ctypes.c_size_t(0))
+        _reuse_depth -= 1
+        if _reuse_depth == 0:
+            libc.mallopt(_M_MMAP_THRESHOLD, ctypes.c_int(_GLIBC_DEFAULT))
+            libc.mallopt(_M_TRIM_THRESHOLD, ctypes.c_int(_GLIBC_DEFAULT))
+            libc.malloc_trim(ctypes.c_size_t(0))
 
 
 @reuse_freed_memory()
