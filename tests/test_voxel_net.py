@@ -12,14 +12,22 @@ from stages.complete.voxel_grid import (  # noqa: E402
     CHANNELS,
     Band,
     LatticeError,
+    band_grid,
     box_sum,
     in_band,
     key_centres,
     lattice_keys,
     trajectory_band,
+    trajectory_columns,
     voxel_features,
 )
-from stages.complete.voxel_net import VoxelNetConfig, VoxelUNet, map_domain, predict_tiles  # noqa: E402
+from stages.complete.voxel_net import (  # noqa: E402
+    VoxelNetConfig,
+    VoxelUNet,
+    map_domain,
+    predict_tiles,
+    reuse_freed_memory,
+)
 
 RES = 0.15
 
@@ -50,6 +58,35 @@ def test_box_sum_matches_brute_force() -> None:
     got = box_sum(occ, r)
     want = np.array([[[occ[i:i + 5, j:j + 5, k:k + 5].sum() for k in range(7)] for j in range(6)] for i in range(5)])
     assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("r", [1, 5])
+def test_box_sum_of_uint8_matches_brute_force(r: int) -> None:
+    rng = np.random.default_rng(r)
+    occ = (rng.random((2 * r + 4, 2 * r + 3, 2 * r + 5)) < 0.4).astype(np.uint8)
+    w = 2 * r + 1
+    want = np.array([[[occ[i:i + w, j:j + w, k:k + w].sum() for k in range(5)] for j in range(3)] for i in range(4)])
+    got = box_sum(occ, r)
+    assert got.dtype == np.float32 and np.array_equal(got, want)
+
+
+def test_precomputed_trajectory_columns_give_the_same_grids() -> None:
+    keys, path = _scene()
+    lo, shape, band = np.array([-8, -12, -4]), (40, 52, 24), Band(radius=2.0, z_below=-1.5, z_above=1.5)
+    cols = trajectory_columns(lo, shape[:2], path, RES)
+    assert np.array_equal(voxel_features(keys, path, lo, shape, RES, cols), voxel_features(keys, path, lo, shape, RES))
+    assert np.array_equal(band_grid(lo, shape, path, RES, band, cols), band_grid(lo, shape, path, RES, band))
+
+
+def test_reuse_freed_memory_changes_no_value() -> None:
+    torch.manual_seed(0)
+    model = VoxelUNet(VoxelNetConfig(widths=(3, 4), bottom_convs=1)).eval()
+    x = torch.rand(1, len(CHANNELS), 16, 16, 8)
+    with torch.no_grad():
+        want = model(x)
+        with reuse_freed_memory():
+            got = model(x)
+    assert torch.equal(got, want)
 
 
 def test_features_of_a_tile_equal_the_whole_box() -> None:

@@ -17,6 +17,7 @@ is ``(k + 1/2) * res``, issue 28), so completion can be posed as a per-voxel occ
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -100,56 +101,75 @@ def trajectory_band(points: F64, trajectory: F64, band: Band) -> F64:
     return np.asarray(points, np.float64)[in_band(points, trajectory, band)]
 
 
-def box_sum(occ: F32, r: int) -> F32:
+def _axis_slice(axis: int, start: int | None, stop: int | None) -> tuple[slice, ...]:
+    return tuple(slice(start, stop) if i == axis else slice(None) for i in range(axis + 1))
+
+
+def box_sum(occ: npt.NDArray[np.generic], r: int) -> F32:
     """Sum of ``occ`` over the ``(2r+1)^3`` box around every voxel of the inner region (``occ`` is padded by
-    ``r`` on every side; the result is ``r`` smaller on every side). Exact for 0/1 inputs (integer sums)."""
-    c = np.cumsum(np.cumsum(np.cumsum(occ.astype(np.int32), 0), 1), 2)
-    c = np.pad(c, ((1, 0), (1, 0), (1, 0)))
+    ``r`` on every side; the result is ``r`` smaller on every side). Exact for 0/1 inputs (integer sums: one
+    running sum per axis)."""
     w = 2 * r + 1
-    nx, ny, nz = (s - 2 * r for s in occ.shape)
-    a = c[w:w + nx, w:w + ny, w:w + nz] - c[:nx, w:w + ny, w:w + nz] - c[w:w + nx, :ny, w:w + nz] \
-        - c[w:w + nx, w:w + ny, :nz] + c[:nx, :ny, w:w + nz] + c[:nx, w:w + ny, :nz] + c[w:w + nx, :ny, :nz] \
-        - c[:nx, :ny, :nz]
+    a = np.asarray(occ)
+    for axis in (2, 1, 0):  # z (the shortest) first: the later running sums see smaller arrays
+        shape = list(a.shape)
+        shape[axis] += 1
+        c = np.zeros(shape, np.int32)
+        np.cumsum(a, axis=axis, dtype=np.int32, out=c[_axis_slice(axis, 1, None)])
+        a = c[_axis_slice(axis, w, None)] - c[_axis_slice(axis, None, -w)]
     return a.astype(np.float32)
 
 
-def occupancy(keys: I64, lo: npt.ArrayLike, shape: tuple[int, int, int]) -> F32:
-    """Dense 0/1 grid of ``shape`` whose voxel ``(0, 0, 0)`` has key ``lo``."""
+def occupancy(keys: I64, lo: npt.ArrayLike, shape: tuple[int, int, int],
+              dtype: npt.DTypeLike = np.float32) -> npt.NDArray[Any]:
+    """Dense 0/1 grid of ``shape`` (float32 unless ``dtype``) whose voxel ``(0, 0, 0)`` has key ``lo``."""
     lo_a = np.asarray(lo, np.int64)
-    grid = np.zeros(shape, np.float32)
+    grid = np.zeros(shape, dtype)
     if len(keys) == 0:
         return grid
     k = keys - lo_a
     inside = np.all((k >= 0) & (k < np.asarray(shape)), axis=1)
     k = k[inside]
-    grid[k[:, 0], k[:, 1], k[:, 2]] = 1.0
+    grid[k[:, 0], k[:, 1], k[:, 2]] = 1
     return grid
 
 
-def trajectory_grids(lo: npt.ArrayLike, shape: tuple[int, int, int], trajectory: F64, res: float) -> tuple[F64, F64]:
-    """Horizontal distance (``(nx, ny)``) and height over the trajectory (``(nx, ny, nz)``) of a box's voxels."""
+def trajectory_columns(lo: npt.ArrayLike, shape: tuple[int, int], trajectory: F64, res: float) -> tuple[F64, F64]:
+    """Per voxel column of a box (``(nx, ny)`` from key ``lo``): horizontal distance to the trajectory and the
+    height of its horizontally nearest point (m)."""
     lo_a = np.asarray(lo, np.int64)
-    nx, ny, nz = shape
+    nx, ny = shape[0], shape[1]
     xs = (lo_a[0] + np.arange(nx) + 0.5) * res
     ys = (lo_a[1] + np.arange(ny) + 0.5) * res
-    zs = (lo_a[2] + np.arange(nz) + 0.5) * res
     xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
     d, i = cKDTree(np.asarray(trajectory, np.float64)[:, :2]).query(xy, k=1)
-    dist = np.asarray(d, np.float64).reshape(nx, ny)
     tz = np.asarray(trajectory, np.float64)[np.asarray(i), 2].reshape(nx, ny)
-    return dist, zs[None, None, :] - tz[:, :, None]
+    return np.asarray(d, np.float64).reshape(nx, ny), tz
+
+
+def _z_centres(lo: npt.ArrayLike, nz: int, res: float) -> F64:
+    return np.asarray((int(np.asarray(lo, np.int64)[2]) + np.arange(nz) + 0.5) * res, np.float64)
+
+
+def trajectory_grids(lo: npt.ArrayLike, shape: tuple[int, int, int], trajectory: F64, res: float,
+                     columns: tuple[F64, F64] | None = None) -> tuple[F64, F64]:
+    """Horizontal distance (``(nx, ny)``) and height over the trajectory (``(nx, ny, nz)``) of a box's voxels;
+    ``columns``: the box's :func:`trajectory_columns`, when already computed."""
+    dist, tz = columns if columns is not None else trajectory_columns(lo, (shape[0], shape[1]), trajectory, res)
+    return dist, _z_centres(lo, shape[2], res)[None, None, :] - tz[:, :, None]
 
 
 def band_grid(lo: npt.ArrayLike, shape: tuple[int, int, int], trajectory: F64, res: float,
-              band: Band) -> npt.NDArray[np.bool_]:
-    """Boolean grid: voxels of the box inside the trajectory band."""
-    dist, height = trajectory_grids(lo, shape, trajectory, res)
+              band: Band, columns: tuple[F64, F64] | None = None) -> npt.NDArray[np.bool_]:
+    """Boolean grid: voxels of the box inside the trajectory band (``columns`` as in :func:`trajectory_grids`)."""
+    dist, height = trajectory_grids(lo, shape, trajectory, res, columns)
     return (dist[:, :, None] <= band.radius) & (height >= band.z_below) & (height <= band.z_above)
 
 
 def voxel_features(radar_keys: I64, trajectory: F64, lo: npt.ArrayLike, shape: tuple[int, int, int],
-                   res: float) -> F32:
-    """The input channels (:data:`CHANNELS`, ``(C, nx, ny, nz)`` float32) on the box of ``shape`` at key ``lo``.
+                   res: float, columns: tuple[F64, F64] | None = None) -> F32:
+    """The input channels (:data:`CHANNELS`, ``(C, nx, ny, nz)`` float32) on the box of ``shape`` at key ``lo``
+    (``columns`` as in :func:`trajectory_grids`).
 
     radar: 0/1 occupancy; density_r*: share of occupied voxels in the ``(2r+1)^3`` box; traj_dist: horizontal
     distance to the trajectory / :data:`DIST_SCALE`; traj_height: height over the horizontally nearest
@@ -157,14 +177,15 @@ def voxel_features(radar_keys: I64, trajectory: F64, lo: npt.ArrayLike, shape: t
     """
     lo_a = np.asarray(lo, np.int64)
     h = FEATURE_HALO
-    padded = occupancy(radar_keys, lo_a - h, (shape[0] + 2 * h, shape[1] + 2 * h, shape[2] + 2 * h))
+    padded = occupancy(radar_keys, lo_a - h, (shape[0] + 2 * h, shape[1] + 2 * h, shape[2] + 2 * h), np.uint8)
     out = np.empty((len(CHANNELS), *shape), np.float32)
     out[0] = padded[h:h + shape[0], h:h + shape[1], h:h + shape[2]]
     for c, r in enumerate(DENSITY_RADII, start=1):
         o = h - r
         sub = padded[o:o + shape[0] + 2 * r, o:o + shape[1] + 2 * r, o:o + shape[2] + 2 * r]
         out[c] = box_sum(sub, r) / float((2 * r + 1) ** 3)
-    dist, height = trajectory_grids(lo_a, shape, trajectory, res)
+    dist, height = trajectory_grids(lo_a, shape, trajectory, res, columns)
     out[3] = np.clip(dist / DIST_SCALE, -CLIP, CLIP)[:, :, None]
-    out[4] = np.clip(height / HEIGHT_SCALE, -CLIP, CLIP)
+    height /= HEIGHT_SCALE
+    out[4] = np.clip(height, -CLIP, CLIP, out=height)
     return out
