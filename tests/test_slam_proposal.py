@@ -101,3 +101,15 @@ def test_weighted_mean_stays_on_the_odometry_where_the_weights_say_nothing() -> 
     # the paper's configuration keeps Algorithm 1's estimate whatever slam.estimate says
     paper = run_method("rich_slam_paper", run.odometry, [empty] * n, basis, cfg, seed=0, motion=motion)
     np.testing.assert_array_equal(paper.poses, paper.estimates["best_per_scan"])
+
+
+def test_the_paper_configuration_keeps_eq22_and_the_grid_its_own_exponent() -> None:
+    from stages.slam.stage import SlamParams
+
+    cfg = SlamParams().config()
+    assert cfg.weighting("rich_slam").exponent == SlamParams().likelihood_exponent != 1.0
+    assert cfg.weighting("rich_slam_paper").exponent == 1.0  # the paper's eq. 22 whatever the setting
+    assert cfg.grid_likelihood_exponent == SlamParams().grid_likelihood_exponent
+    # the stage's defaults are the calibrated ones, SlamConfig's pure defaults the paper's
+    assert (cfg.proposal, cfg.estimate, cfg.yaw_bias) == ("odometry_covariance", "weighted_mean", None)
+    assert SlamConfig().proposal == "gmapping" and SlamConfig().likelihood_exponent == 1.0

@@ -65,6 +65,8 @@ class SlamConfig:
     et_rings: int = 1
     et_variance: Literal["exact", "taylor"] = "taylor"
     likelihood_exponent: float = 1.0
+    #: the grid filter's (fastslam_grid) exponent on its scan likelihood
+    grid_likelihood_exponent: float = 1.0
     noise: MotionNoise = field(default_factory=MotionNoise)
     #: the filters' proposal: the odometry's own increment covariance (needs :class:`OdometryMotion`) or
     #: GMapping's fitted form (``noise``); ``rich_slam_paper`` always takes ``gmapping``. The pure default is
@@ -109,7 +111,7 @@ class SlamConfig:
             ring_points=self.et_ring_points,
             rings=self.et_rings,
             et_variance=self.et_variance,
-            exponent=self.likelihood_exponent,
+            exponent=1.0 if method in PAPER_METHODS else self.likelihood_exponent,  # the paper: eq. 22 as is
             free_weight=self.free_weight,
         )
 
@@ -232,7 +234,7 @@ def run_method(
     maps: GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps | None = None
     if method == "fastslam_grid":
         spec = make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution)
-        maps = GridParticleMaps(spec, cfg.n_particles, cfg.grid, cfg.likelihood_exponent)
+        maps = GridParticleMaps(spec, cfg.n_particles, cfg.grid, cfg.grid_likelihood_exponent)
     elif method in HILBERT_METHODS:
         form = choose_form(cfg, method, scans, basis.M)
         if cfg.backend == "numpy":

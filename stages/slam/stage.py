@@ -102,7 +102,12 @@ class SlamParams(StageParams):
     et_variance: Literal["exact", "taylor"] = Field(
         "taylor", description="variance at the tolerance points: with Phi linearised about the endpoint (the mean "
         "stays exact; log weights within 0.003 of the exact ones on the demo, README), or exact Phi^T cov Phi (slower)")
-    likelihood_exponent: float = Field(1.0, gt=0, description="exponent on the scan likelihood (1: the paper)")
+    likelihood_exponent: float = Field(
+        0.5, gt=0, description="exponent on the scan likelihood of the Hilbert filters (1: the paper, eq. 22; 0.5 "
+        "tempers the weight for beams that are not independent, chosen on the calibration runs, stages/slam/README.md;"
+        " rich_slam_paper: always 1)")
+    grid_likelihood_exponent: float = Field(1.0, gt=0, description="fastslam_grid: exponent on its scan likelihood "
+                                            "(1 was better on the calibration runs)")
     free_weight: float = Field(1.0, ge=0, description="weight of the free samples' log terms against the endpoints' "
                                "in every Hilbert method's weight (1: the paper, eq. 23)")
     # -- pose refinement (rich_slam_refined, stages/slam/pose_refinement.py)
@@ -189,7 +194,7 @@ class SlamParams(StageParams):
             signal_variance=self.signal_variance, noise_variance=self.noise_variance, n_basis=self.n_basis,
             basis_kind=self.basis_kind, endpoint_tolerance=self.endpoint_tolerance,
             et_ring_points=self.et_ring_points, et_rings=self.et_rings, et_variance=self.et_variance,
-            likelihood_exponent=self.likelihood_exponent,
+            likelihood_exponent=self.likelihood_exponent, grid_likelihood_exponent=self.grid_likelihood_exponent,
             noise=MotionNoise(self.motion_std_xy, self.motion_std_yaw, self.motion_rel_trans, self.motion_rel_rot,
                               self.motion_rot_per_trans, self.motion_trans_per_rot),
             proposal=self.proposal,
