@@ -129,14 +129,15 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
             extra = [e for e in estimates if e != cfg.estimate and m != "odometry"]
             for est_name in [*extra, cfg.estimate]:  # the configured row last: it marks the run as done
                 label = estimate_label(m, est_name, cfg.estimate)
-                row_config = json.dumps({**overrides, "estimate": est_name}, sort_keys=True) if extra else config
+                row_config = config if est_name == cfg.estimate else json.dumps({**overrides, "estimate": est_name},
+                                                                                   sort_keys=True)
                 if (run_dir.name, label, s, row_config) in done:
                     continue
                 est = np.asarray(res.poses if est_name == cfg.estimate else res.estimates[est_name], np.float64)
                 e = evaluate_trajectory(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2], n_align=100)
                 w = evaluate_trajectory_whole(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
                 row = {"seq": run_dir.name, "method": label, "seed": s,
-                       "config": config if est_name == cfg.estimate else row_config, "pos_rmse_m": e.pos_rmse_m,
+                       "config": row_config, "pos_rmse_m": e.pos_rmse_m,
                        "yaw_rmse_deg": e.yaw_rmse_deg, "pos_rmse_whole_m": w.pos_rmse_m,
                        "yaw_rmse_whole_deg": w.yaw_rmse_deg, "s_per_scan": seconds / len(odo),
                        "resamplings": res.resampled, "scans": len(odo)}
