@@ -108,7 +108,11 @@ def test_the_paper_configuration_keeps_eq22_and_the_grid_its_own_exponent() -> N
 
     cfg = SlamParams().config()
     assert cfg.weighting("rich_slam").exponent == SlamParams().likelihood_exponent != 1.0
-    assert cfg.weighting("rich_slam_paper").exponent == 1.0  # the paper's eq. 22 whatever the setting
+    paper = cfg.for_method("rich_slam_paper")  # the paper's eq. 22 and proposal whatever the settings
+    assert paper.weighting("rich_slam_paper").exponent == 1.0
+    assert paper.map_model("rich_slam_paper").weighting.exponent == 1.0
+    assert (paper.proposal, paper.estimate, paper.yaw_bias) == ("gmapping", "best_per_scan", None)
+    assert cfg.for_method("rich_slam") is cfg
     assert cfg.grid_likelihood_exponent == SlamParams().grid_likelihood_exponent
     # the stage's defaults are the calibrated ones, SlamConfig's pure defaults the paper's
     assert (cfg.proposal, cfg.estimate, cfg.yaw_bias) == ("odometry_covariance", "weighted_mean", None)

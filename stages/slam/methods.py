@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any, Literal
 
@@ -98,6 +98,14 @@ class SlamConfig:
     #: sigma_n^2 of the endpoints' +1 labels in the map update (None: ``noise_variance`` for all, eq. 15)
     endpoint_noise_variance: float | None = None
 
+    def for_method(self, method: str) -> SlamConfig:
+        """The configuration a method runs with: ``rich_slam_paper`` (:data:`PAPER_METHODS`) is the paper's
+        whatever the settings (the GMapping proposal, no bias state, Algorithm 1's largest-weight particle,
+        eq. 22 with exponent 1); every other method runs with this one."""
+        if method not in PAPER_METHODS:
+            return self
+        return replace(self, proposal="gmapping", yaw_bias=None, estimate="best_per_scan", likelihood_exponent=1.0)
+
     def map_model(self, method: str, form: Literal["information", "covariance"] = "information") -> MapModel:
         """The particle maps' parameter object of a Hilbert method (every backend takes it)."""
         return MapModel(self.lengthscale_m, self.signal_variance, self.noise_variance, self.weighting(method),
@@ -111,7 +119,7 @@ class SlamConfig:
             ring_points=self.et_ring_points,
             rings=self.et_rings,
             et_variance=self.et_variance,
-            exponent=1.0 if method in PAPER_METHODS else self.likelihood_exponent,  # the paper: eq. 22 as is
+            exponent=self.likelihood_exponent,
             free_weight=self.free_weight,
         )
 
@@ -127,10 +135,9 @@ class OdometryMotion:
 
 def make_proposal(method: str, cfg: SlamConfig, motion: OdometryMotion | None, rng: np.random.Generator
                   ) -> Proposal:
-    """The proposal of a filter method (``rich_slam_paper``: the fixed GMapping form, no bias state)."""
-    paper = method in PAPER_METHODS
-    kind = "gmapping" if paper else cfg.proposal
-    bias = None if paper else cfg.yaw_bias
+    """The proposal of a filter method under ``cfg`` (``rich_slam_paper``'s: :meth:`SlamConfig.for_method`)."""
+    cfg = cfg.for_method(method)
+    kind, bias = cfg.proposal, cfg.yaw_bias
     if (kind == "odometry_covariance" or bias is not None) and motion is None:
         raise ValueError(f"{method}: proposal = {kind}{' with the yaw-rate bias state' if bias else ''} needs the "
                          f"odometry's increment covariance and scan intervals (OdometryMotion)")
@@ -219,13 +226,15 @@ def run_method(
     """Run one method over the scans; ``odometry (T, 3)`` are world <- base poses at the scan times, ``motion``
     their increment covariance and intervals (needed by ``proposal = odometry_covariance`` and the bias state)."""
     t0 = time.perf_counter()
+    cfg = cfg.for_method(method)
     odometry = np.asarray(odometry, dtype=np.float64).reshape(-1, 3)
     if method == "odometry":
         if on_step is not None:
             for _ in range(len(odometry)):
                 on_step()
-        return MethodResult(method, odometry.copy(), np.ones(len(odometry)), time.perf_counter() - t0,
-                            estimates={e: odometry.copy() for e in ESTIMATES})
+        odo_poses = odometry.copy()
+        return MethodResult(method, odo_poses, np.ones(len(odometry)), time.perf_counter() - t0,
+                            estimates=dict.fromkeys(ESTIMATES, odo_poses))
     rng = np.random.default_rng(seed)
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; one of {', '.join(METHODS)}")
@@ -264,7 +273,7 @@ def run_method(
                 maps.close()
     estimates = {"best_per_scan": h.best_trajectory(), "final_best_history": h.final_best_history(),
                  "weighted_mean": h.mean_trajectory()}
-    poses = estimates["best_per_scan" if method in PAPER_METHODS else cfg.estimate]
+    poses = estimates[cfg.estimate]
     return MethodResult(
         method, poses, np.asarray(h.n_eff), time.perf_counter() - t0, int(np.sum(h.resampled)),
         np.asarray(h.particles), best_map.get("theta"), best_map.get("cov"),
