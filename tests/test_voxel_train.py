@@ -85,3 +85,76 @@ def test_union_rule_is_decided_on_validation_tables_only() -> None:
     assert not decide_union(table("val", 0.4, 0.5, 0.50, 0.52))
     with pytest.raises(ValueError, match="validation scenes only"):
         decide_union(table("test", 0.5, 0.4, 0.5, 0.5))
+
+
+def test_crop_stream_workers_are_seeded_and_repeatable() -> None:
+    """With workers, batches come from generators seeded by (seed, start step, worker): the same run gives the
+    same batches, and the two workers (and another start step) draw different crops."""
+    from stages.complete.train_voxel import CropStream
+
+    cfg = VoxelTrainConfig(crop_xy=32, crop_z=16, margin=4, batch_size=2, seed=5)
+    scenes = [_scene()]
+
+    def first(start: int, n: int = 4) -> list[tuple]:
+        loader = torch.utils.data.DataLoader(CropStream(scenes, cfg, Band(2.0, -1.0, 1.0), 8, start),
+                                             batch_size=None, num_workers=2)
+        it = iter(loader)
+        return [next(it) for _ in range(n)]
+
+    a, b = first(0), first(0)
+    for (xa, la, ma), (xb, lb, mb) in zip(a, b, strict=True):
+        assert torch.equal(xa, xb) and torch.equal(la, lb) and torch.equal(ma, mb)
+        assert xa.shape == (2, 5, 32, 32, 16) and la.shape == ma.shape == (2, 32, 32, 16)
+    assert not torch.equal(a[0][0], a[1][0])  # worker 0 and worker 1
+    assert not torch.equal(first(100, 1)[0][0], a[0][0])  # a resumed run draws anew
+
+
+def test_training_runs_from_an_initial_checkpoint_and_counts_its_time(tmp_path) -> None:
+    """``--init``: the weights and config of a checkpoint, a fresh schedule, and the checkpoint's own training
+    seconds added to the new record (the CPU budget of issue 28 is cumulative)."""
+    from stages.complete.train_voxel import main
+    from stages.complete.voxel_checkpoint import VoxelMeta, load_voxel_checkpoint, save_voxel_checkpoint
+
+    root = _toy_map_set(tmp_path)
+    init = tmp_path / "init.safetensors"
+    model = VoxelUNet(VoxelNetConfig(widths=(4, 6)))
+    save_voxel_checkpoint(init, model, VoxelMeta(model.config, 0.15, 0.5, Band(),
+                                                 train={"selected": {"step": 7, "elapsed_s": 100.0}}))
+    out = tmp_path / "out.safetensors"
+    rc = main(["--maps", str(root), "--out", str(out), "--init", str(init), "--time-limit", "0.01",
+               "--val-every", "1"])
+    assert rc == 0
+    m, meta = load_voxel_checkpoint(out)
+    assert m.config.widths == (4, 6)
+    assert meta.train["init"]["selected_step"] == 7
+    assert meta.train["total_elapsed_s"] >= 100.0
+
+
+def test_cuda_device_without_cuda_is_a_one_line_error(tmp_path, capsys) -> None:
+    from stages.complete.train_voxel import main
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    rc = main(["--maps", str(tmp_path), "--device", "cuda"])
+    assert rc == 2 and "no CUDA device" in capsys.readouterr().err
+
+
+def _toy_map_set(tmp_path):
+    """A map set of one train and one validation scene (per environment, the highest run is validation)."""
+    import json
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    root = tmp_path / "maps"
+    s = _scene()
+    for name in ("toy_run0", "toy_run1"):
+        d = root / name
+        d.mkdir(parents=True)
+        t = s.trajectory
+        for kind, c in (("radar", (s.radar_keys + 0.5) * 0.15), ("lidar_filtered", (s.lidar_keys + 0.5) * 0.15),
+                        ("poses", t), ("trajectory", t)):
+            pq.write_table(pa.table({"x": c[:, 0], "y": c[:, 1], "z": c[:, 2]}), d / f"{kind}.parquet")
+    (root / "index.json").write_text(json.dumps({n: {"split": "train", "environment": "toy"}
+                                                 for n in ("toy_run0", "toy_run1")}))
+    return root

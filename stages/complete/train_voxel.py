@@ -14,6 +14,10 @@
   checkpoint is the one with the highest F1 (its threshold stored with it).
 - Resumable state (``<out>.state.pt``): weights, optimiser, generator, history, elapsed seconds; the
   learning rate follows a cosine over the time budget.
+- Devices: ``--device cuda`` trains on a GPU; ``--workers N`` builds the crops in N worker processes (a GPU
+  step is faster than one process builds a batch). With workers, worker ``i`` draws from a generator seeded
+  by ``(seed, step at the loader's start, i)`` and batches arrive in worker order, so a run is repeatable for
+  a given worker count; a resumed run restarts the workers at the step it resumes from.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -65,6 +70,7 @@ class VoxelTrainConfig(BaseModel):
     pos_weight: float = Field(2.0, gt=0, description="BCE weight of occupied voxels")
     dice_weight: float = Field(1.0, ge=0, description="weight of the soft Dice term")
     val_every: int = Field(100, ge=1, description="steps between validations")
+    workers: int = Field(0, ge=0, description="crop-building worker processes (0: in the training process)")
     val_crops: int = Field(6, ge=1, description="validation crops per validation scene")
     time_limit: float = Field(3600.0, gt=0, description="training seconds (the cosine schedule's length)")
     seed: int = 0
@@ -140,6 +146,29 @@ def augment(crop: Crop, rng: np.random.Generator) -> Crop:
     return Crop(t(crop.features, 1), t(crop.label, 0), t(crop.mask, 0))
 
 
+def random_batch(scenes: list[SceneData], rng: np.random.Generator, cfg: VoxelTrainConfig, band: Band,
+                 stride: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``cfg.batch_size`` augmented random crops stacked as (features, label, mask) tensors."""
+    crops = [augment(random_crop(scenes, rng, cfg, band, stride), rng) for _ in range(cfg.batch_size)]
+    return (torch.from_numpy(np.stack([c.features for c in crops])),
+            torch.from_numpy(np.stack([c.label for c in crops])), torch.from_numpy(np.stack([c.mask for c in crops])))
+
+
+class CropStream(torch.utils.data.IterableDataset):
+    """Endless random batches for a ``DataLoader`` with workers: worker ``i`` seeds its own generator with
+    ``(seed, start_step, i)``."""
+
+    def __init__(self, scenes: list[SceneData], cfg: VoxelTrainConfig, band: Band, stride: int,
+                 start_step: int) -> None:
+        self.scenes, self.cfg, self.band, self.stride, self.start_step = scenes, cfg, band, stride, start_step
+
+    def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+        info = torch.utils.data.get_worker_info()
+        rng = np.random.default_rng([self.cfg.seed, self.start_step, info.id if info else 0])
+        while True:
+            yield random_batch(self.scenes, rng, self.cfg, self.band, self.stride)
+
+
 def validation_crops(scenes: list[SceneData], cfg: VoxelTrainConfig, band: Band, stride: int) -> list[Crop]:
     """``val_crops`` crops per validation scene at evenly spaced trajectory points (deterministic)."""
     out = []
@@ -162,19 +191,21 @@ def loss_fn(logits: torch.Tensor, label: torch.Tensor, mask: torch.Tensor, pos_w
 
 
 @torch.no_grad()
-def validate(model: VoxelUNet, crops: list[Crop], cfg: VoxelTrainConfig) -> dict[str, Any]:
+def validate(model: VoxelUNet, crops: list[Crop], cfg: VoxelTrainConfig,
+             device: torch.device | None = None) -> dict[str, Any]:
     """Validation loss and voxel F1 / precision / recall at every threshold of :data:`THRESHOLDS`."""
+    device = device or torch.device("cpu")
     model.eval()
     tp = np.zeros(len(THRESHOLDS))
     fp = np.zeros(len(THRESHOLDS))
     fn = np.zeros(len(THRESHOLDS))
     losses = []
     for c in crops:
-        x = torch.from_numpy(c.features)[None].contiguous(memory_format=torch.channels_last_3d)
-        lab, mask = torch.from_numpy(c.label)[None], torch.from_numpy(c.mask)[None]
+        x = torch.from_numpy(c.features)[None].to(device).contiguous(memory_format=torch.channels_last_3d)
+        lab, mask = torch.from_numpy(c.label)[None].to(device), torch.from_numpy(c.mask)[None].to(device)
         logit = model(x)
         losses.append(float(loss_fn(logit, lab, mask, cfg.pos_weight, cfg.dice_weight)))
-        p = torch.sigmoid(logit)[0].numpy()[c.mask > 0]
+        p = torch.sigmoid(logit)[0].float().cpu().numpy()[c.mask > 0]
         y = c.label[c.mask > 0] > 0
         for i, t in enumerate(THRESHOLDS):
             pred = p >= t
@@ -224,8 +255,9 @@ def _rng_state(rng: np.random.Generator) -> str:
 
 
 def train_voxel(root: Path, out: Path, cfg: VoxelTrainConfig, band: Band, resume: bool = False,
-                log: Any = print) -> dict[str, Any]:
-    """Train, validate, write the selected checkpoint, history and curve; return the summary."""
+                log: Any = print, device: str | torch.device = "cpu", init: Path | None = None) -> dict[str, Any]:
+    """Train, validate, write the selected checkpoint, history and curve; return the summary. ``init``: start
+    from that voxel checkpoint's weights (a fresh optimiser and schedule; its config replaces the widths)."""
     from sources.mapset import read_index
     from stages.complete.maps import map_split
 
@@ -233,9 +265,23 @@ def train_voxel(root: Path, out: Path, cfg: VoxelTrainConfig, band: Band, resume
     res = cfg.resolution
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    model = VoxelUNet(VoxelNetConfig(widths=cfg.widths, bottom_convs=cfg.bottom_convs,
-                                     bottom_dilation=cfg.bottom_dilation))
-    model = model.to(memory_format=torch.channels_last_3d)  # type: ignore[call-overload]  # 1.6x faster conv3d
+    init_record: dict[str, Any] | None = None
+    if init is not None:
+        from stages.complete.voxel_checkpoint import load_voxel_checkpoint
+
+        model, init_meta = load_voxel_checkpoint(init)
+        cfg = cfg.model_copy(update={"widths": model.config.widths, "bottom_convs": model.config.bottom_convs,
+                                     "bottom_dilation": model.config.bottom_dilation})
+        sel = init_meta.train.get("selected", {})
+        init_record = {"checkpoint": str(init), "selected_step": sel.get("step"),
+                       "elapsed_s": init_meta.train.get("total_elapsed_s", sel.get("elapsed_s")),
+                       "device": init_meta.train.get("device", "cpu")}
+        model.train()
+    else:
+        model = VoxelUNet(VoxelNetConfig(widths=cfg.widths, bottom_convs=cfg.bottom_convs,
+                                         bottom_dilation=cfg.bottom_dilation))
+    dev = torch.device(device)
+    model = model.to(dev, memory_format=torch.channels_last_3d)  # type: ignore[call-overload]  # 1.6x faster conv3d
     stride = model.stride()
     if cfg.crop_xy % stride or cfg.crop_z % stride:
         raise UserError(f"crop_xy {cfg.crop_xy} and crop_z {cfg.crop_z} must be multiples of the stride {stride}")
@@ -248,11 +294,11 @@ def train_voxel(root: Path, out: Path, cfg: VoxelTrainConfig, band: Band, resume
     if resume:
         if not state_path.is_file():
             raise UserError(f"{state_path}: no training state to resume from")
-        st = torch.load(state_path, weights_only=True)
+        st = torch.load(state_path, weights_only=True, map_location=dev)
         model.load_state_dict(st["model"])
         opt.load_state_dict(st["opt"])
         rng.bit_generator.state = json.loads(st["rng"])
-        torch.set_rng_state(st["torch_rng"])
+        torch.set_rng_state(st["torch_rng"].cpu())
         history = json.loads(st["history"])
         step, elapsed, best = int(st["step"]), float(st["elapsed"]), float(st["best"])
         log(f"resumed at step {step}, {elapsed:.0f} s elapsed, best validation F1 {best:.4f}")
@@ -267,17 +313,24 @@ def train_voxel(root: Path, out: Path, cfg: VoxelTrainConfig, band: Band, resume
     record = {"maps": str(root), "train_scenes": split.train, "val_scenes": split.val,
               "validation_rule": "maps.validation_scenes: per environment the train scene with the highest run "
                                  "number; the checkpoint with the highest validation-crop voxel F1",
-              "config": cfg.model_dump(mode="json"), "band": band.__dict__, "command": " ".join(sys.argv)}
+              "config": cfg.model_dump(mode="json"), "band": band.__dict__, "command": " ".join(sys.argv),
+              "device": str(dev), "parameters": n_parameters(model), "init": init_record}
     model.train()
     losses: list[float] = []
+    batches: Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None = None
+    if cfg.workers:
+        loader = torch.utils.data.DataLoader(CropStream(train_scenes, cfg, band, stride, step), batch_size=None,
+                                             num_workers=cfg.workers, prefetch_factor=4,
+                                             pin_memory=dev.type == "cuda")
+        batches = iter(loader)
     t_start = time.perf_counter() - elapsed
     while elapsed < cfg.time_limit:
         for g in opt.param_groups:
             g["lr"] = lr_at(cfg, elapsed)
-        crops = [augment(random_crop(train_scenes, rng, cfg, band, stride), rng) for _ in range(cfg.batch_size)]
-        x = torch.from_numpy(np.stack([c.features for c in crops])).contiguous(memory_format=torch.channels_last_3d)
-        lab = torch.from_numpy(np.stack([c.label for c in crops]))
-        mask = torch.from_numpy(np.stack([c.mask for c in crops]))
+        xb, lab, mask = next(batches) if batches is not None else random_batch(train_scenes, rng, cfg, band, stride)
+        nb = dev.type == "cuda"
+        x = xb.to(dev, non_blocking=nb).contiguous(memory_format=torch.channels_last_3d)
+        lab, mask = lab.to(dev, non_blocking=nb), mask.to(dev, non_blocking=nb)
         loss = loss_fn(model(x), lab, mask, cfg.pos_weight, cfg.dice_weight)
         opt.zero_grad()
         loss.backward()
@@ -286,7 +339,7 @@ def train_voxel(root: Path, out: Path, cfg: VoxelTrainConfig, band: Band, resume
         step += 1
         elapsed = time.perf_counter() - t_start
         if step % cfg.val_every == 0 or elapsed >= cfg.time_limit:
-            v = validate(model, val, cfg)
+            v = validate(model, val, cfg, dev)
             elapsed = time.perf_counter() - t_start
             row = {"step": step, "elapsed_s": round(elapsed, 1), "lr": lr_at(cfg, elapsed),
                    "train_loss": float(np.mean(losses)), **v}
@@ -295,8 +348,10 @@ def train_voxel(root: Path, out: Path, cfg: VoxelTrainConfig, band: Band, resume
             improved = v["val_f1"] > best
             if improved:
                 best = v["val_f1"]
+                prior = float(init_record["elapsed_s"] or 0.0) if init_record else 0.0
                 meta = VoxelMeta(model.config, res, v["val_threshold"], band,
-                                 train={**record, "selected": row, "history_file": hist_path.name})
+                                 train={**record, "selected": row, "history_file": hist_path.name,
+                                        "total_elapsed_s": round(prior + row["elapsed_s"], 1)})
                 save_voxel_checkpoint(out, model, meta, half=True)
             torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "rng": _rng_state(rng),
                         "torch_rng": torch.get_rng_state(), "history": json.dumps(history), "step": step,
@@ -308,7 +363,8 @@ def train_voxel(root: Path, out: Path, cfg: VoxelTrainConfig, band: Band, resume
             log(f"step {step} {elapsed / 60:.1f} min (ETA {eta / 60:.1f} min) lr {row['lr']:.2e} train "
                 f"{row['train_loss']:.4f} val {v['val_loss']:.4f} F1 {v['val_f1']:.4f} @ {v['val_threshold']} "
                 f"P {v['val_precision']:.3f} R {v['val_recall']:.3f}{'  * saved' if improved else ''}")
-    return {"steps": step, "elapsed_s": elapsed, "best_val_f1": best, "out": str(out)}
+    return {"steps": step, "elapsed_s": elapsed, "best_val_f1": best, "out": str(out), "device": str(dev),
+            "crops": step * cfg.batch_size}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -318,16 +374,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--time-limit", type=float, default=3600.0, help="training seconds")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--init", type=Path, default=None, help="start from this voxel checkpoint's weights")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--val-every", type=int, default=100)
+    ap.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
+    ap.add_argument("--workers", type=int, default=0, help="crop-building worker processes")
+    ap.add_argument("--batch-size", type=int, default=None)
+    ap.add_argument("--lr", type=float, default=None)
+    ap.add_argument("--widths", default=None, help="comma-separated widths per level (default 8,24,48,64)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     from rich.console import Console
 
     console = Console(stderr=True)
     try:
-        cfg = VoxelTrainConfig(time_limit=args.time_limit, seed=args.seed, val_every=args.val_every)
-        summary = train_voxel(args.maps, args.out, cfg, Band(), args.resume, log=console.log)
+        extra: dict[str, Any] = {k: v for k, v in (("batch_size", args.batch_size), ("lr", args.lr)) if v is not None}
+        if args.widths:
+            extra["widths"] = tuple(int(w) for w in args.widths.split(","))
+        cfg = VoxelTrainConfig(time_limit=args.time_limit, seed=args.seed, val_every=args.val_every,
+                               workers=args.workers, **extra)
+        if args.device.startswith("cuda") and not torch.cuda.is_available():
+            raise UserError(f"--device {args.device}: torch sees no CUDA device here; use --device cpu")
+        summary = train_voxel(args.maps, args.out, cfg, Band(), args.resume, log=console.log, device=args.device,
+                              init=args.init)
     except UserError as exc:
         console.print(f"error: {exc}")
         return 2

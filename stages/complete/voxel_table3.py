@@ -29,16 +29,23 @@ PAPER_SECONDS = 56.0
 ROWS = ("input", "prefiltered input", "voxel", "voxel + prefiltered radar", "paper RMap")
 
 
-def mm_gflops(threads: int | None = None, n: int = 2048) -> float:
-    """float32 ``torch.mm`` rate (GFLOP/s, best of 5) on this machine now: the reference of the timings."""
+def mm_gflops(threads: int | None = None, n: int = 2048, device: str = "cpu") -> float:
+    """float32 ``torch.mm`` rate (GFLOP/s, best of 5) on this machine now: the reference of the timings
+    (on a GPU: n = 8192, synchronised, with torch's default TF32 setting for matrix products)."""
     import torch
 
-    a = torch.randn(n, n, generator=torch.Generator().manual_seed(0))
+    if device != "cpu":
+        n = max(n, 8192)
+    a = torch.randn(n, n, generator=torch.Generator().manual_seed(0)).to(device)
     torch.mm(a, a)
     best = float("inf")
     for _ in range(5):
+        if device != "cpu":
+            torch.cuda.synchronize()
         t0 = time.perf_counter()
         torch.mm(a, a)
+        if device != "cpu":
+            torch.cuda.synchronize()
         best = min(best, time.perf_counter() - t0)
     return 2.0 * n**3 / best / 1e9
 
@@ -51,7 +58,7 @@ def score(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
 
 
 def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core: int | None = None,
-              log: Any = print, only: list[str] | None = None) -> dict[str, Any]:
+              log: Any = print, only: list[str] | None = None, device: str = "cpu") -> dict[str, Any]:
     """Rows ``{row: {scene: metrics}}`` and timings for the scenes of ``split`` (test, val)."""
     from sources.mapset import read_index, read_map_set
     from stages.complete.maps import map_split
@@ -67,7 +74,7 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
         from stages.complete.voxel_checkpoint import load_voxel_checkpoint
         from stages.complete.voxel_net import reuse_freed_memory
 
-        model, meta = load_voxel_checkpoint(checkpoint)
+        model, meta = load_voxel_checkpoint(checkpoint, device=device)
         heap = reuse_freed_memory()
     rows: dict[str, dict[str, dict[str, float]]] = {r: {} for r in ROWS}
     seconds: dict[str, float] = {}
@@ -87,7 +94,7 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
                 res = meta.resolution
                 rk = lattice_keys(trajectory_band(m.radar, m.trajectory, meta.band), res, f"{s} radar map")
                 t0 = time.perf_counter()
-                pred = predict_tiles(model, rk, m.trajectory, res, meta.band, core=core)
+                pred = predict_tiles(model, rk, m.trajectory, res, meta.band, core=core, device=device)
                 seconds[s] = time.perf_counter() - t0
                 cost["voxels_run"] += pred.n_voxels_run
                 cost["feature_seconds"] += pred.feature_seconds
@@ -104,6 +111,7 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
         out["inference_seconds"] = float(sum(seconds.values()))
         out |= cost
         out["checkpoint"] = str(checkpoint)
+        out["device"] = device
         out["threshold"] = meta.threshold if meta else None
     return out
 
@@ -164,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--checkpoint", type=Path, default=None)
     ap.add_argument("--no-model", action="store_true")
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N (the network; features stay on the CPU)")
     ap.add_argument("--core", type=int, default=None, help="tile core (voxels); default: one pass per map up to "
                     "24 M voxels")
     ap.add_argument("--scenes", default=None, help="comma-separated subset of the split's scenes")
@@ -177,15 +186,15 @@ def main(argv: list[str] | None = None) -> int:
 
         if args.threads:
             torch.set_num_threads(args.threads)
-        ref = mm_gflops()
+        ref = mm_gflops(device=args.device)
     ckpt = None if args.no_model else (args.checkpoint or Path("data/models/rmap_voxel.safetensors"))
     table = run_table(args.maps, args.split, ckpt, Band(), args.core,
-                      only=args.scenes.split(",") if args.scenes else None)
+                      only=args.scenes.split(",") if args.scenes else None, device=args.device)
     if ref is not None:
         import torch
 
         table["mm_gflops"] = ref
-        table["mm_gflops_after"] = mm_gflops()
+        table["mm_gflops_after"] = mm_gflops(device=args.device)
         table["threads"] = torch.get_num_threads()
     md = to_markdown(table)
     print(md)
