@@ -157,6 +157,20 @@ def test_tiled_inference_equals_one_pass(core: int) -> None:
     assert np.abs(short.probs[c] - one.probs[a]).max() > 1e-6
 
 
+def test_bf16_inference_is_close_to_float32_and_the_default_is_exact() -> None:
+    """``bf16`` runs the network under bfloat16 autocast: the same voxels, probabilities close but not equal;
+    without it the float32 result is unchanged."""
+    torch.manual_seed(0)
+    model = VoxelUNet(VoxelNetConfig(widths=(3, 4, 5), bottom_convs=1, bottom_dilation=2)).eval()
+    keys, path = _scene()
+    band = Band(radius=2.0, z_below=-1.5, z_above=1.5)
+    ref = predict_tiles(model, keys, path, RES, band)
+    again = predict_tiles(model, keys, path, RES, band, bf16=False)
+    half = predict_tiles(model, keys, path, RES, band, bf16=True)
+    assert np.array_equal(ref.keys, half.keys) and np.array_equal(ref.probs, again.probs)
+    diff = np.abs(half.probs - ref.probs)
+    assert diff.max() < 0.02 and diff.max() > 0
+
 def test_checkpoint_round_trip_and_kind_errors(tmp_path) -> None:
     from stages.complete.voxel_checkpoint import (
         VoxelMeta,

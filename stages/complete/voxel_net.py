@@ -202,7 +202,7 @@ def reuse_freed_memory(limit: int = 2**31 - 1) -> Iterator[None]:
 def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float, band: Band,
                   core: int | None = None, halo: int | None = None, device: str | torch.device = "cpu",
                   advance: Callable[[int], None] | None = None, origins: Sequence[tuple[int, int]] | None = None,
-                  ) -> TilePrediction:
+                  bf16: bool = False) -> TilePrediction:
     """Occupancy probability of every band voxel of a map: one pass over the map's :class:`Domain` (zero
     padding at its faces), computed as xy tiles of ``core`` voxels (None: :func:`auto_core`), each with
     ``halo`` voxels of context cut at the domain's faces, and the whole z range of the domain.
@@ -211,7 +211,8 @@ def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float
     stride: the result then equals the single pass (``tests/test_voxel_net.py``). Tiles whose core holds no
     band voxel are skipped (their voxels are outside the pre-filter band and never output), and so are tiles
     with no radar voxel in core + halo (nothing to complete: no voxel output). ``origins`` restricts the run
-    to some tiles (tests).
+    to some tiles (tests). ``bf16``: the network under bfloat16 autocast (1.7x faster on a CPU with AVX-512
+    BF16; probabilities move by up to about 0.01, so the completed map can change by a few voxels).
     """
     s = model.stride()
     dom = map_domain(trajectory, res, band, s)
@@ -249,7 +250,8 @@ def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float
         out.feature_seconds += time.perf_counter() - t0
         t1 = time.perf_counter()
         x = torch.from_numpy(feats)[None].to(device).contiguous(memory_format=torch.channels_last_3d)
-        logit = model(x)[0, cx, cy, :]
+        with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bf16):
+            logit = model(x)[0, cx, cy, :]
         prob = torch.sigmoid(logit).float().cpu().numpy()
         del x, logit
         out.model_seconds += time.perf_counter() - t1

@@ -58,7 +58,8 @@ def score(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
 
 
 def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core: int | None = None,
-              log: Any = print, only: list[str] | None = None, device: str = "cpu") -> dict[str, Any]:
+              log: Any = print, only: list[str] | None = None, device: str = "cpu", bf16: bool = False
+              ) -> dict[str, Any]:
     """Rows ``{row: {scene: metrics}}`` and timings for the scenes of ``split`` (test, val)."""
     from sources.mapset import read_index, read_map_set
     from stages.complete.maps import map_split
@@ -94,7 +95,7 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
                 res = meta.resolution
                 rk = lattice_keys(trajectory_band(m.radar, m.trajectory, meta.band), res, f"{s} radar map")
                 t0 = time.perf_counter()
-                pred = predict_tiles(model, rk, m.trajectory, res, meta.band, core=core, device=device)
+                pred = predict_tiles(model, rk, m.trajectory, res, meta.band, core=core, device=device, bf16=bf16)
                 seconds[s] = time.perf_counter() - t0
                 cost["voxels_run"] += pred.n_voxels_run
                 cost["feature_seconds"] += pred.feature_seconds
@@ -112,6 +113,7 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
         out |= cost
         out["checkpoint"] = str(checkpoint)
         out["device"] = device
+        out["bf16"] = bf16
         out["threshold"] = meta.threshold if meta else None
     return out
 
@@ -173,6 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-model", action="store_true")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N (the network; features stay on the CPU)")
+    ap.add_argument("--bf16", action="store_true", help="the network under bfloat16 autocast (faster; approximate)")
     ap.add_argument("--core", type=int, default=None, help="tile core (voxels); default: one pass per map up to "
                     "24 M voxels")
     ap.add_argument("--scenes", default=None, help="comma-separated subset of the split's scenes")
@@ -189,7 +192,8 @@ def main(argv: list[str] | None = None) -> int:
         ref = mm_gflops(device=args.device)
     ckpt = None if args.no_model else (args.checkpoint or Path("data/models/rmap_voxel.safetensors"))
     table = run_table(args.maps, args.split, ckpt, Band(), args.core,
-                      only=args.scenes.split(",") if args.scenes else None, device=args.device)
+                      only=args.scenes.split(",") if args.scenes else None, device=args.device,
+                      bf16=args.bf16)
     if ref is not None:
         import torch
 
