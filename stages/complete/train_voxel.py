@@ -382,13 +382,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch-size", type=int, default=None)
     ap.add_argument("--lr", type=float, default=None)
     ap.add_argument("--widths", default=None, help="comma-separated widths per level (default 8,24,48,64)")
+    ap.add_argument("--crop-xy", type=int, default=None, help="crop side in x and y (voxels; default 96)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     from rich.console import Console
 
     console = Console(stderr=True)
     try:
-        extra: dict[str, Any] = {k: v for k, v in (("batch_size", args.batch_size), ("lr", args.lr)) if v is not None}
+        extra: dict[str, Any] = {k: v for k, v in (("batch_size", args.batch_size), ("lr", args.lr),
+                                                   ("crop_xy", args.crop_xy)) if v is not None}
         if args.widths:
             extra["widths"] = tuple(int(w) for w in args.widths.split(","))
         cfg = VoxelTrainConfig(time_limit=args.time_limit, seed=args.seed, val_every=args.val_every,
