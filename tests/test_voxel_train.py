@@ -158,3 +158,15 @@ def _toy_map_set(tmp_path):
     (root / "index.json").write_text(json.dumps({n: {"split": "train", "environment": "toy"}
                                                  for n in ("toy_run0", "toy_run1")}))
     return root
+
+
+def test_the_voxel_model_needs_no_fpsample() -> None:
+    """The voxel model's training and Table III import without fpsample (only the patch path needs it): a GPU
+    machine without that wheel runs them (it failed there once, through a module-level import)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['fpsample'] = None; "
+            "import stages.complete.train_voxel, stages.complete.voxel_table3, stages.complete.maps")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
