@@ -240,6 +240,14 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
     assert json.loads(rows3[1]["config"])["estimate"] == other
     best = next(r for r in rows2 if r["method"] == "fastslam_grid")
     assert rows3[2]["pos_rmse_m"] == best["pos_rmse_m"]  # the configured estimate's row is the plain run's
+    # rich_slam_paper reads its trajectory as Algorithm 1 whatever the configured estimate: that is its own row,
+    # and only the other estimate gets a row of its own (no copy of the plain row)
+    out4 = tmp_path / "t3_paper.jsonl"
+    assert table3.main([str(tmp_path / "seq_a"), "--methods", "rich_slam_paper", "--seeds", "0", "--out", str(out4),
+                        "--set", "n_particles=4", "--set", "workers=0", "--set", "n_basis=16",
+                        "--estimates", "best_per_scan,weighted_mean"]) == 0
+    rows4 = [json.loads(line) for line in out4.read_text().splitlines()]
+    assert [r["method"] for r in rows4] == ["rich_slam_paper, weighted_mean", "rich_slam_paper"]
     with pytest.raises(SystemExit):
         table3.main([*args3[:-1], "mean"])
     png = tmp_path / "t3.png"

@@ -126,14 +126,15 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
             t0 = time.perf_counter()
             res = run_method(m, odo, samples, basis, cfg, s, motion=motion)
             seconds = time.perf_counter() - t0
-            extra = [e for e in estimates if e != cfg.estimate and m != "odometry"]
-            for est_name in [*extra, cfg.estimate]:  # the configured row last: it marks the run as done
-                label = estimate_label(m, est_name, cfg.estimate)
-                row_config = config if est_name == cfg.estimate else json.dumps({**overrides, "estimate": est_name},
-                                                                                   sort_keys=True)
+            own = cfg.for_method(m).estimate  # the estimate the method ran with (rich_slam_paper: its own)
+            extra = [e for e in estimates if e != own and m != "odometry"]
+            for est_name in [*extra, own]:  # the configured row last: it marks the run as done
+                label = estimate_label(m, est_name, own)
+                row_config = config if est_name == own else json.dumps({**overrides, "estimate": est_name},
+                                                                         sort_keys=True)
                 if (run_dir.name, label, s, row_config) in done:
                     continue
-                est = np.asarray(res.poses if est_name == cfg.estimate else res.estimates[est_name], np.float64)
+                est = np.asarray(res.estimates[est_name], np.float64)
                 e = evaluate_trajectory(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2], n_align=100)
                 w = evaluate_trajectory_whole(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
                 row = {"seq": run_dir.name, "method": label, "seed": s,
