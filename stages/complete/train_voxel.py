@@ -276,7 +276,6 @@ def train_voxel(root: Path, out: Path, cfg: VoxelTrainConfig, band: Band, resume
         init_record = {"checkpoint": str(init), "selected_step": sel.get("step"),
                        "elapsed_s": init_meta.train.get("total_elapsed_s", sel.get("elapsed_s")),
                        "device": init_meta.train.get("device", "cpu")}
-        model.train()
     else:
         model = VoxelUNet(VoxelNetConfig(widths=cfg.widths, bottom_convs=cfg.bottom_convs,
                                          bottom_dilation=cfg.bottom_dilation))
@@ -318,19 +317,18 @@ def train_voxel(root: Path, out: Path, cfg: VoxelTrainConfig, band: Band, resume
     model.train()
     losses: list[float] = []
     batches: Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None = None
+    cuda = dev.type == "cuda"  # pinned host batches, copied without blocking
     if cfg.workers:
         loader = torch.utils.data.DataLoader(CropStream(train_scenes, cfg, band, stride, step), batch_size=None,
-                                             num_workers=cfg.workers, prefetch_factor=4,
-                                             pin_memory=dev.type == "cuda")
+                                             num_workers=cfg.workers, prefetch_factor=4, pin_memory=cuda)
         batches = iter(loader)
     t_start = time.perf_counter() - elapsed
     while elapsed < cfg.time_limit:
         for g in opt.param_groups:
             g["lr"] = lr_at(cfg, elapsed)
         xb, lab, mask = next(batches) if batches is not None else random_batch(train_scenes, rng, cfg, band, stride)
-        nb = dev.type == "cuda"
-        x = xb.to(dev, non_blocking=nb).contiguous(memory_format=torch.channels_last_3d)
-        lab, mask = lab.to(dev, non_blocking=nb), mask.to(dev, non_blocking=nb)
+        x = xb.to(dev, non_blocking=cuda).contiguous(memory_format=torch.channels_last_3d)
+        lab, mask = lab.to(dev, non_blocking=cuda), mask.to(dev, non_blocking=cuda)
         loss = loss_fn(model(x), lab, mask, cfg.pos_weight, cfg.dice_weight)
         opt.zero_grad()
         loss.backward()
