@@ -22,6 +22,7 @@ separate one-command script ``python -m benchmarks.slam_cuda`` (a GPU, a few min
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -32,6 +33,7 @@ from stages.slam.beam_sampling import BeamSamples, sample_beams
 from stages.slam.methods import SlamConfig, choose_form, make_hilbert_maps, step_flops
 from stages.slam.parallel import ParallelHilbertMaps
 from stages.slam.rbpf import RBPF, odometry_increments
+from stages.slam.submaps import SubmapModel, SubmapParticleMaps
 from stages.slam.synthetic import make_run
 
 AREA = "slam"
@@ -69,7 +71,7 @@ def _time_filter(cfg: SlamConfig, beams: int, steps: int, M: int, refined: bool 
             if i >= 3:
                 times.append(time.perf_counter() - t0)
     finally:
-        if isinstance(maps, ParallelHilbertMaps):
+        if isinstance(maps, ParallelHilbertMaps | SubmapParticleMaps):
             maps.close()
     n = float(np.mean([s.n for s in scans[3:]]))
     b = float(np.mean([len(s.endpoints) for s in scans[3:]]))
@@ -115,10 +117,12 @@ def run(quick: bool = False) -> list[Result]:
     steps = 8 if quick else 30
     cfg = SlamConfig()
     densities = (("sparse", 6), ("medium", 30), ("dense", 80))
-    main, torch_rows, refined = [], [], []
+    main, torch_rows, refined, local = [], [], [], []
+    sub = replace(cfg, submaps=SubmapModel(9.0, 256, 5.25), free_weight=0.0)
     for label, beams in densities:  # interleaved, the machine may be shared
         main.append((label, _time_filter(cfg, beams, steps, 256)))
         refined.append(_time_filter(cfg, beams, steps, 256, refined=True))
+        local.append(_time_filter(sub, beams, steps, 256))
         torch_rows.append((label, _torch_cpu(beams, steps, (1, 2) if label == "medium" else (1,))))
     ref = max(ref0, _matmul_rate(size))  # the better of before and after: the machine may be shared
     out: list[Result] = [Result(AREA, "numpy matmul float64", ref, "GFLOP/s",
@@ -136,6 +140,12 @@ def run(quick: bool = False) -> list[Result]:
                           "the same step without refinement", rr["mean"] / r["mean"], "<= 2 (issue 17)",
                           f"{cfg.refinement.iterations} Gauss-Newton iterations ({cfg.refinement.objective}); "
                           f"without: {r['mean']:.3f} s/scan in the same run"))
+    for (label, r), rl in zip(main, local, strict=True):
+        out.append(Result(AREA, f"step Np=200 M=256 {label} submaps", rl["mean"], "s/scan",
+                          "the same step on one global map", rl["mean"] / r["mean"], "<= 2 (issue 27)",
+                          "slam.map = submaps (half width 9 m, M = 256 each, at most 2 open: one weighed and "
+                          f"updated, one updated), 2 workers per submap; global: {r['mean']:.3f} s/scan in the "
+                          "same run"))
     for (label, r), (_, rt) in zip(main, torch_rows, strict=True):
         for threads, t in rt.items():
             out.append(Result(AREA, f"step Np=200 M=256 {label} torch cpu {threads} thread(s)", t["mean"], "s/scan",

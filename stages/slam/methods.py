@@ -19,7 +19,7 @@ from stages.slam import hilbert_map as hm
 from stages.slam.backend import Backend, Device, resolve_device
 from stages.slam.beam_sampling import BeamSamples, to_world
 from stages.slam.grid_map import GridModel, GridParticleMaps, make_grid_spec
-from stages.slam.parallel import ParallelHilbertMaps
+from stages.slam.parallel import ParallelHilbertMaps, submap_factory
 from stages.slam.pose_refinement import PoseRefinement
 from stages.slam.rbpf import (
     RBPF,
@@ -33,6 +33,7 @@ from stages.slam.rbpf import (
     YawBias,
     odometry_increments,
 )
+from stages.slam.submaps import SubmapModel, SubmapParticleMaps
 
 Method = Literal["odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only",
                  "rich_slam_refined", "rich_slam_paper"]
@@ -97,14 +98,23 @@ class SlamConfig:
     free_weight: float = 1.0
     #: sigma_n^2 of the endpoints' +1 labels in the map update (None: ``noise_variance`` for all, eq. 15)
     endpoint_noise_variance: float | None = None
+    #: the Hilbert filters' particle maps: local submaps (:mod:`submaps`) or None, one global map over the
+    #: trajectory's envelope (the paper; ``rich_slam_paper`` always)
+    submaps: SubmapModel | None = None
+    #: SE length scale of the submaps (m); the global map takes ``lengthscale_m``
+    submap_lengthscale_m: float = 1.0
 
     def for_method(self, method: str) -> SlamConfig:
         """The configuration a method runs with: ``rich_slam_paper`` (:data:`PAPER_METHODS`) is the paper's
         whatever the settings (the GMapping proposal, no bias state, Algorithm 1's largest-weight particle,
-        eq. 22 with exponent 1); every other method runs with this one."""
+        eq. 22 with exponent 1, one global map); ``rich_slam_refined`` always has the global map; every other
+        method runs with this one."""
+        if method in REFINED_METHODS:
+            return replace(self, submaps=None)  # the refinement works on one basis: the global map
         if method not in PAPER_METHODS:
             return self
-        return replace(self, proposal="gmapping", yaw_bias=None, estimate="best_per_scan", likelihood_exponent=1.0)
+        return replace(self, proposal="gmapping", yaw_bias=None, estimate="best_per_scan", likelihood_exponent=1.0,
+                       submaps=None)
 
     def map_model(self, method: str, form: Literal["information", "covariance"] = "information") -> MapModel:
         """The particle maps' parameter object of a Hilbert method (every backend takes it)."""
@@ -162,6 +172,8 @@ class MethodResult:
     yaw_bias: F64 | None = None  # (T,) weighted mean of the particles' yaw-rate bias (bias state only)
     #: every estimate of the trajectory from the same run (``poses`` is the configured one's)
     estimates: dict[str, F64] = field(default_factory=dict)
+    #: submaps the filter opened (``cfg.submaps``; 0 with the global map)
+    submaps_opened: int = 0
 
 
 def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]:
@@ -202,8 +214,14 @@ def choose_form(cfg: SlamConfig, method: str, scans: Sequence[BeamSamples], M: i
 
 def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_particles: int,
                       form: Literal["information", "covariance"] = "information",
-                      ) -> HilbertParticleMaps | ParallelHilbertMaps:
-    """The particle maps of a Hilbert method, in ``workers`` processes when ``workers > 0``."""
+                      ) -> HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps:
+    """The particle maps of a Hilbert method: local submaps (in process) when ``cfg.submaps`` is set, else one
+    global map over ``basis``; in ``workers`` processes when ``workers > 0``."""
+    if cfg.submaps is not None:
+        model = replace(cfg.map_model(method, form), lengthscale=cfg.submap_lengthscale_m)
+        if cfg.workers > 0:
+            return SubmapParticleMaps(cfg.submaps, submap_factory(n_particles, model, cfg.workers), cfg.basis_kind)
+        return SubmapParticleMaps.create(cfg.submaps, n_particles, model, cfg.basis_kind)
     factory: Callable[..., HilbertParticleMaps | ParallelHilbertMaps] = (
         partial(ParallelHilbertMaps, workers=cfg.workers) if cfg.workers > 0 else HilbertParticleMaps)
     return factory(basis, n_particles, cfg.map_model(method, form))
@@ -240,12 +258,15 @@ def run_method(
         raise ValueError(f"unknown method {method!r}; one of {', '.join(METHODS)}")
     proposal = make_proposal(method, cfg, motion, rng)
     form: Literal["information", "covariance"] = "information"
-    maps: GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps | None = None
+    maps: GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps | None = None
     if method == "fastslam_grid":
         spec = make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution)
         maps = GridParticleMaps(spec, cfg.n_particles, cfg.grid, cfg.grid_likelihood_exponent)
     elif method in HILBERT_METHODS:
-        form = choose_form(cfg, method, scans, basis.M)
+        form = choose_form(cfg, method, scans, cfg.submaps.n_basis if cfg.submaps else basis.M)
+        if cfg.submaps is not None and cfg.backend != "numpy":
+            raise ValueError(f"{method}: submaps run on the numpy backend only; set slam.map = global or "
+                             "slam.backend = numpy")
         if cfg.backend == "numpy":
             maps = make_hilbert_maps(cfg, basis, method, cfg.n_particles, form)
     else:
@@ -269,7 +290,7 @@ def run_method(
                      refinement=refinement, basis=basis, exponent=cfg.likelihood_exponent, proposal=proposal)
             h = f.run(odometry_increments(odometry), scans, observer=keep_best, on_step=on_step)
         finally:
-            if isinstance(maps, ParallelHilbertMaps):
+            if isinstance(maps, ParallelHilbertMaps | SubmapParticleMaps):
                 maps.close()
     estimates = {"best_per_scan": h.best_trajectory(), "final_best_history": h.final_best_history(),
                  "weighted_mean": h.mean_trajectory()}
@@ -279,6 +300,7 @@ def run_method(
         np.asarray(h.particles), best_map.get("theta"), best_map.get("cov"),
         form if method in HILBERT_METHODS else "", device,
         np.asarray(h.yaw_bias) if proposal.bias is not None else None, estimates,
+        maps.opened if isinstance(maps, SubmapParticleMaps) else 0,
     )
 
 

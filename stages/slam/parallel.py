@@ -13,6 +13,7 @@ from __future__ import annotations
 import itertools
 import multiprocessing as mp
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
 from multiprocessing.shared_memory import SharedMemory
@@ -48,21 +49,32 @@ def _attach(name: str, shape: tuple[int, ...], dtype: str) -> tuple[SharedMemory
 
 
 def _worker_main(conn: Connection, spec: _Spec) -> None:
-    """Serve ``("step", poses, points, labels)`` requests on particles ``[lo, hi)`` until ``None``."""
+    """Serve requests on particles ``[lo, hi)`` until ``None``: ``("step", poses, points, labels, beam, origin)``
+    (weights and update), ``("update", ...)`` (the update alone) and ``("reset", basis)`` (the parent has put
+    the prior of a new basis with the same M in the shared arrays)."""
     Np, M = spec.n_particles, spec.M
     shapes = [(Np, M), (Np, M, M), (Np, M)]  # theta, info or cov, eta
     blocks = [_attach(name, shape, spec.dtype) for name, shape in zip(spec.names, shapes, strict=False)]
     arrays = tuple(b[1][spec.lo : spec.hi] for b in blocks)
-    maps = HilbertParticleMaps(spec.basis, spec.hi - spec.lo, replace(spec.model, dtype=spec.dtype), arrays=arrays)
+    model = replace(spec.model, dtype=spec.dtype)
+    maps = HilbertParticleMaps(spec.basis, spec.hi - spec.lo, model, arrays=arrays)
     try:
         while True:
             msg = conn.recv()
             if msg is None:
                 break
-            _, poses, points, labels, beam, origin = msg
-            samples = BeamSamples(points, labels, beam, points[labels > 0], origin)
             try:
-                conn.send(("ok", maps.weigh_and_update(poses, samples)))
+                if msg[0] == "reset":
+                    maps = HilbertParticleMaps(msg[1], spec.hi - spec.lo, model, arrays=arrays)
+                    conn.send(("ok", None))
+                    continue
+                kind, poses, points, labels, beam, origin = msg
+                samples = BeamSamples(points, labels, beam, points[labels > 0], origin)
+                if kind == "update":
+                    maps.update(poses, samples)
+                    conn.send(("ok", None))
+                else:
+                    conn.send(("ok", maps.weigh_and_update(poses, samples)))
             except Exception as exc:  # report, keep serving
                 conn.send(("error", f"{type(exc).__name__}: {exc}"))
     finally:
@@ -86,33 +98,22 @@ class ParallelHilbertMaps:
         workers: int = 2,
     ) -> None:
         self.model = model
-        lengthscale, signal_variance, dtype, form = model.lengthscale, model.signal_variance, model.dtype, model.form
+        dtype, form = model.dtype, model.form
         self.basis = basis
         self.dtype = np.dtype(dtype)
         self.form = form
         M = basis.M
         self._shm: list[SharedMemory] = []
         self.theta = self._shared((n_particles, M))
-        self.theta[...] = 0
         self.stack: StackedInformation | None = None
         self.cov: npt.NDArray[Any] | None = None
         self.cstack = StackedCovariance(np.ones(1), 0, self.dtype)
         if form == "information":
-            _, info0, _ = hm.prior_information(basis, lengthscale, signal_variance)
-            init = StackedInformation(np.diag(info0), 1, self.dtype)
-            info = self._shared((n_particles, M, M))
-            eta = self._shared((n_particles, M))
-            info[...] = init.info[0]
-            eta[...] = 0
-            # kernels for the parent's queries of single maps
-            self.stack = StackedInformation(np.diag(info0), n_particles, self.dtype, arrays=(info, eta))
-            self._stacks = [self.theta, info, eta]
+            self._stacks = [self.theta, self._shared((n_particles, M, M)), self._shared((n_particles, M))]
         else:
-            _, cov0 = hm.prior(basis, lengthscale, signal_variance, dtype=self.dtype)
             self.cov = self._shared((n_particles, M, M))
-            self.cov[...] = cov0
-            self.cstack = StackedCovariance(np.diag(cov0), n_particles, self.dtype, array=self.cov)
             self._stacks = [self.theta, self.cov]
+        self._prior(basis)
         workers = max(1, min(workers, n_particles))
         bounds = np.linspace(0, n_particles, workers + 1).round().astype(int)
         ctx = mp.get_context("spawn")
@@ -142,6 +143,43 @@ class ParallelHilbertMaps:
                     os.environ[v] = old
         self._bounds = bounds
 
+    def _prior(self, basis: hm.HilbertBasis) -> None:
+        """Every particle's map to the prior on ``basis`` (in the shared arrays), and the parent's kernels."""
+        m = self.model
+        n_particles = len(self.theta)
+        self.basis = basis
+        self.theta[...] = 0
+        if self.form == "information":
+            _, info0, _ = hm.prior_information(basis, m.lengthscale, m.signal_variance)
+            info, eta = self._stacks[1], self._stacks[2]
+            info[...] = StackedInformation(np.diag(info0), 1, self.dtype).info[0]
+            eta[...] = 0
+            # kernels for the parent's queries of single maps
+            self.stack = StackedInformation(np.diag(info0), n_particles, self.dtype, arrays=(info, eta))
+        else:
+            assert self.cov is not None
+            _, cov0 = hm.prior(basis, m.lengthscale, m.signal_variance, dtype=self.dtype)
+            self.cov[...] = cov0
+            self.cstack = StackedCovariance(np.diag(cov0), n_particles, self.dtype, array=self.cov)
+
+    def reset(self, basis: hm.HilbertBasis) -> None:
+        """Start again from the prior on a new ``basis`` with the same M (a new submap in the same processes)."""
+        if basis.M != self.theta.shape[1]:
+            raise ValueError(f"reset to a basis of M = {basis.M}, these maps hold M = {self.theta.shape[1]}")
+        self._prior(basis)
+        self._round_trip([("reset", basis)] * len(self._conns))
+
+    def _round_trip(self, messages: list[Any]) -> list[Any]:
+        for c, msg in zip(self._conns, messages, strict=True):
+            c.send(msg)
+        out = []
+        for c in self._conns:
+            status, value = c.recv()
+            if status != "ok":
+                raise RuntimeError(f"slam worker failed: {value}")
+            out.append(value)
+        return out
+
     def _shared(self, shape: tuple[int, ...]) -> npt.NDArray[Any]:
         size = int(np.prod(shape)) * self.dtype.itemsize
         shm = SharedMemory(create=True, size=max(size, 1))
@@ -152,21 +190,22 @@ class ParallelHilbertMaps:
         """The weights and, in the same round trip, the map update (see the class docstring)."""
         return self.weigh_and_update(poses, samples)
 
+    def _scan_messages(self, kind: str, poses: F64, samples: BeamSamples) -> list[Any]:
+        return [(kind, poses[lo:hi], samples.points, samples.labels, samples.beam, samples.origin)
+                for lo, hi in itertools.pairwise(self._bounds)]
+
     def weigh_and_update(self, poses: F64, samples: BeamSamples) -> F64:
         if samples.n == 0:
             return np.zeros(len(poses))
-        for c, lo, hi in zip(self._conns, self._bounds[:-1], self._bounds[1:], strict=True):
-            c.send(("step", poses[lo:hi], samples.points, samples.labels, samples.beam, samples.origin))
-        out = []
-        for c in self._conns:
-            status, value = c.recv()
-            if status != "ok":
-                raise RuntimeError(f"slam worker failed: {value}")
-            out.append(value)
-        return np.concatenate(out)
+        return np.concatenate(self._round_trip(self._scan_messages("step", poses, samples)))
 
     def update(self, poses: F64, samples: BeamSamples) -> None:
         """Done by the workers together with the weights."""
+
+    def insert(self, poses: F64, samples: BeamSamples) -> None:
+        """The map update alone, without weights (a submap that is built but not weighed against)."""
+        if samples.n:
+            self._round_trip(self._scan_messages("update", poses, samples))
 
     def select(self, indices: npt.NDArray[np.int64]) -> None:
         """Resample the shared maps in place (only the rows that change are copied)."""
@@ -207,3 +246,17 @@ class ParallelHilbertMaps:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def submap_factory(n_particles: int, model: MapModel, workers: int
+                   ) -> Callable[[hm.HilbertBasis, Any], ParallelHilbertMaps]:
+    """Particle maps of a new submap (``submaps.SubmapParticleMaps``) in ``workers`` processes: a closed
+    submap's maps (``spare``) are reset to the new basis, so the processes start once per open submap."""
+
+    def make(basis: hm.HilbertBasis, spare: Any) -> ParallelHilbertMaps:
+        if isinstance(spare, ParallelHilbertMaps):
+            spare.reset(basis)
+            return spare
+        return ParallelHilbertMaps(basis, n_particles, model, workers=workers)
+
+    return make

@@ -632,6 +632,10 @@ class HilbertParticleMaps:
         per = 2 * rows * self.basis.M * self.dtype.itemsize
         return max(1, int(self.block_bytes // max(per, 1)))
 
+    def insert(self, poses: F64, samples: BeamSamples) -> None:
+        """The map update alone, without weights (as :meth:`update`; the name the worker maps share)."""
+        self.update(poses, samples)
+
     def update(self, poses: F64, samples: BeamSamples) -> None:
         if samples.n == 0:
             return

@@ -32,6 +32,7 @@ from stages.slam.grid_map import GridModel
 from stages.slam.methods import (
     HILBERT_METHODS,
     METHODS,
+    PAPER_METHODS,
     REFINED_METHODS,
     Estimate,
     Method,
@@ -43,6 +44,7 @@ from stages.slam.methods import (
 )
 from stages.slam.pose_refinement import PoseRefinement
 from stages.slam.rbpf import MotionNoise, YawBias
+from stages.slam.submaps import SubmapModel
 
 F64 = npt.NDArray[np.floating[Any]]
 
@@ -70,6 +72,14 @@ class SlamParams(StageParams):
     basis_kind: Literal["tensor", "circular"] = Field("tensor", description="'tensor': eq. 7; 'circular': the M "
                                                       "smallest eigenvalues (Solin and Sarkka's code)")
     domain_padding: float = Field(10.0, ge=0, description="Hilbert domain = odometry envelope padded by this (m)")
+    map: Literal["global", "submaps"] = Field(
+        "global", description="the Hilbert filters' particle maps: one global map over the odometry's envelope (the "
+        "paper) or local submaps that move with the robot (stages/slam/submaps.py; rich_slam_paper: always global)")
+    submap_half_width: float = Field(9.0, gt=0, description="submaps: half width of each square submap (m); must "
+                                     "exceed max_range + endpoint_tolerance + 0.5")
+    submap_n_basis: int = Field(256, ge=1, description="submaps: basis functions per submap (a perfect square for "
+                                "the tensor basis)")
+    submap_lengthscale: float = Field(10.0, gt=0, description="submaps: SE length scale in map units (10 dm = 1 m)")
     map_update: Literal["kalman", "laplace"] = Field("kalman", description="map update: Kalman (eq. 15-19) or "
                                                      "recursive Laplace (Appendix)")
     laplace_iterations: int = Field(20, ge=1, description="Newton iterations of the Laplace update at most")
@@ -172,6 +182,19 @@ class SlamParams(StageParams):
         if self.basis_kind == "tensor" and round(self.n_basis**0.5) ** 2 != self.n_basis:
             raise ValueError(f"n_basis = {self.n_basis} is not a perfect square (the tensor basis of eq. 7 needs one;"
                              " or set basis_kind = 'circular')")
+        if self.map == "submaps":
+            if self.basis_kind == "tensor" and round(self.submap_n_basis**0.5) ** 2 != self.submap_n_basis:
+                raise ValueError(f"submap_n_basis = {self.submap_n_basis} is not a perfect square (the tensor basis "
+                                 "of eq. 7 needs one; or set basis_kind = 'circular')")
+            try:
+                self.submap_model()
+            except ValueError as exc:
+                raise ValueError(f"slam.submap_half_width = {self.submap_half_width}: {exc}") from None
+            hil = [m for m in dict.fromkeys([self.method, *self.methods]) if m in HILBERT_METHODS
+                   and m not in (*PAPER_METHODS, *REFINED_METHODS)]
+            if self.backend == "torch" and hil:
+                raise ValueError(f"map = submaps runs on the numpy backend only ({', '.join(hil)}): set slam.backend "
+                                 "= numpy or slam.map = global")
         if self.z_min is not None and self.z_max is not None and self.z_min > self.z_max:
             raise ValueError(f"z_min {self.z_min} > z_max {self.z_max}")
         if self.backend == "torch" and self.map_update != "kalman":
@@ -188,8 +211,14 @@ class SlamParams(StageParams):
             raise ValueError("device = cuda needs backend = torch (the numpy backend runs on the cpu)")
         return self
 
+    def submap_model(self) -> SubmapModel:
+        """The submaps' geometry (their samples reach max_range plus the endpoint tolerance)."""
+        return SubmapModel(self.submap_half_width, self.submap_n_basis, self.max_range + self.endpoint_tolerance)
+
     def config(self) -> SlamConfig:
         return SlamConfig(
+            submaps=self.submap_model() if self.map == "submaps" else None,
+            submap_lengthscale_m=self.submap_lengthscale * self.length_unit_m,
             n_particles=self.n_particles, lengthscale_m=self.lengthscale * self.length_unit_m,
             signal_variance=self.signal_variance, noise_variance=self.noise_variance, n_basis=self.n_basis,
             basis_kind=self.basis_kind, endpoint_tolerance=self.endpoint_tolerance,
@@ -251,7 +280,8 @@ class SlamStage(Stage):
         results: dict[str, MethodResult] = {}
         with ctx.progress(len(methods) * len(scans), "methods") as advance:
             for m in methods:
-                obs = tracker.observe if (m == p.method and m in HILBERT_METHODS) else None
+                local = cfg.for_method(m).submaps is not None  # no global map to track: replayed below
+                obs = tracker.observe if (m == p.method and m in HILBERT_METHODS and not local) else None
                 res = run_method(m, odo, samples, basis, cfg, p.seed, observer=obs, on_step=advance, motion=motion)
                 results[m] = res
                 write_trajectory(ctx.output(f"trajectory_{m}.parquet"), scans, t_ns, res)
@@ -264,6 +294,7 @@ class SlamStage(Stage):
                     **({"yaw_bias_final_deg_s": round(float(np.degrees(res.yaw_bias[-1])), 5)}
                        if res.yaw_bias is not None and len(res.yaw_bias) else {}),
                     **({"device": res.device} if m in HILBERT_METHODS else {}),
+                    **({"submaps_opened": res.submaps_opened} if res.submaps_opened else {}),
                 }
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
                                   f"s/scan), {res.resampled} resamplings[/]")
