@@ -85,6 +85,35 @@ def test_voxel_model_writes_lattice_voxels_inside_the_band(tmp_path: Path) -> No
     assert ctx.stats["model"] == "voxel" and ctx.stats["prefilter"] == "band" and ctx.stats["n_tiles"] > 1
 
 
+def test_voxel_bf16_option_reaches_the_network(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``complete.bf16`` runs the network under bfloat16 autocast: passed to ``predict_tiles``, recorded in the
+    stats, and the map it writes is the float32 map to within a few voxels (probabilities near the threshold
+    may cross it)."""
+    from stages.complete import voxel_net
+    from stages.complete.stage import STAGE, CompleteParams
+
+    seen: list[bool] = []
+    real = voxel_net.predict_tiles
+
+    def spy(*args: object, **kwargs: object) -> object:
+        seen.append(bool(kwargs.get("bf16")))
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(voxel_net, "predict_tiles", spy)
+    _maps(tmp_path)
+    maps = {}
+    for bf16 in (False, True):
+        params = CompleteParams(model="voxel", models=["voxel"], checkpoint=str(_ckpt(tmp_path)), tile=16, bf16=bf16)
+        ctx = _context(tmp_path, params)
+        STAGE.run(ctx)
+        ctx.close()
+        assert ctx.stats["bf16"] is bf16
+        t = read_artifact(ctx.output("completed_map.parquet"), "completed_map")
+        maps[bf16] = {tuple(p) for p in np.round(np.stack([t.column(c).to_numpy() for c in "xyz"], 1), 4)}
+    assert seen == [False, True]
+    assert len(maps[True] ^ maps[False]) <= 0.02 * len(maps[False])
+
+
 @pytest.mark.parametrize("case", ["uppointr_ckpt", "resolution", "empty", "off_lattice", "no_trajectory"])
 def test_voxel_bad_inputs_are_one_line_errors_and_write_nothing(tmp_path: Path, case: str) -> None:
     from stages.complete.checkpoint import CheckpointMeta, save_checkpoint

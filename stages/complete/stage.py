@@ -91,6 +91,9 @@ class CompleteParams(StageParams):
                             f"(ColoRadar logs, map sequences); with model = voxel {VOXEL_CHECKPOINT}")
     device: Literal["cpu", "cuda", "auto"] = Field("cpu", description="where the network runs; auto = cuda "
                                                    "when torch sees a GPU")
+    bf16: bool = Field(False, description="voxel model: run the network under bfloat16 autocast (1.5x faster on a "
+                       "CPU with bf16 support, Table III unchanged to the printed digit on the 18 test scenes; the "
+                       "probabilities differ slightly, so the map may differ by a few voxels)")
     batch_size: int = Field(8, ge=1, description="patches per forward pass")
     seed: int = Field(0, description="seed of the input resampling (patches with more or fewer points than the "
                       "network's input size) and of torch")
@@ -343,7 +346,8 @@ class CompleteStage(Stage):
         dom = map_domain(traj, res, meta.band, model.stride())
         core = p.tile if p.tile is not None else auto_core(dom)
         with ctx.progress(len(tile_origins(dom, core)), "completing voxel tiles") as advance:
-            pred = predict_tiles(model, keys, traj, res, meta.band, core=core, device=device, advance=advance)
+            pred = predict_tiles(model, keys, traj, res, meta.band, core=core, device=device, advance=advance,
+                                 bf16=p.bf16)
         wall = time.perf_counter() - t0
         out = key_centres(completed_keys(pred, meta.threshold, keys if meta.union_radar else None), res)
         return out, {
@@ -354,6 +358,7 @@ class CompleteStage(Stage):
             "n_points": len(out),
             "resolution": res,
             "device": str(device),
+            "bf16": p.bf16,
             "checkpoint": str(ckpt.relative_to(PROJECT_ROOT) if ckpt.is_relative_to(PROJECT_ROOT) else ckpt),
             "model_size": f"voxel U-Net {n_parameters(model):,} parameters",
             "n_parameters": n_parameters(model),

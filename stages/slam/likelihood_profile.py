@@ -9,16 +9,18 @@ field, each averaged over several test scans.
 
     python -m stages.slam.likelihood_profile [RUN_DIR ...] [--scans 8] [--out table.md]
         [--free-weight W ...] [--free-clearance C ...] [--ray-step R ...] [--endpoint-noise S2 ...] [--no-et]
-        [--refine]
+        [--refine] [--submaps]
 
 ``--free-weight`` / ``--free-clearance`` / ``--ray-step`` / ``--endpoint-noise`` add rows for the Hilbert
 weight with the free samples' log terms weighted by W, with no free sample within C metres of the endpoint,
 with a free sample every R metres along the beam (Table II: 1 m), or with a map whose endpoints (+1
 samples) have the noise variance S2 instead of sigma_n^2 (issue 17's levers inside the paper's model).
 ``--no-et`` adds the paper's weight without the endpoint tolerance (``rich_slam_no_et``, the ablation).
-``--refine`` adds the refinement table: where Gauss-Newton on each objective of :mod:`pose_refinement` takes
-the test scans from the true pose and from offsets of it, with a prior too wide to hold them (the map's own
-optimum; a good objective stays near zero).
+``--submaps`` adds the weight against local submaps (``submaps.py``) built along ground truth as the filter
+builds them, with the paper's free-sample terms and without them. ``--refine`` adds the refinement table:
+where Gauss-Newton on each objective of :mod:`pose_refinement` takes the test scans from the true pose and
+from offsets of it, with a prior too wide to hold them (the map's own optimum; a good objective stays near
+zero).
 
 Without RUN_DIR it profiles the synthetic corridor (``synthetic.py``); a run folder needs ``ingest/``
 and ``filter/`` (ground-truth poses at the radar scan times).
@@ -82,6 +84,39 @@ def offset_poses(pose: F64, axis: str) -> tuple[F64, F64]:
     return compose(np.repeat(pose[None, :], len(offs), 0), delta), offs
 
 
+def submap_profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: SlamConfig,
+                    model: str = "hilbert_gp submaps") -> list[Profile]:
+    """Profiles of the weight against local submaps (``cfg.submaps``, ``cfg.submap_lengthscale_m``): the
+    submaps are built along ground truth as the filter builds them (opened and closed as it moves), and each
+    test scan is scored against the submap the filter would weigh it against."""
+    from stages.slam.submaps import SubmapParticleMaps
+
+    assert cfg.submaps is not None
+    w = cfg.weighting("rich_slam")
+    mm = MapModel(cfg.submap_lengthscale_m, cfg.signal_variance, cfg.noise_variance, w, form="covariance")
+    sub = SubmapParticleMaps.create(cfg.submaps, 1, mm, cfg.basis_kind)
+    sums: dict[str, F64] = {}
+    count = 0
+    done = 0
+    for k in sorted(test):
+        for i in range(done, k):
+            sub.weigh_and_update(gt[i : i + 1], scans[i])
+        done = k
+        target = sub.weighing(gt[k : k + 1])
+        if scans[k].n == 0 or target is None:
+            continue
+        count += 1
+        theta, cov = target.maps.map_of(0)  # type: ignore[attr-defined]  # in-process maps
+        for axis in ("forward", "lateral", "yaw"):
+            poses, _ = offset_poses(gt[k], axis)
+            n = len(poses)
+            ll = hilbert_log_likelihood(target.basis, np.repeat(theta[None], n, 0), np.repeat(cov[None], n, 0),
+                                        poses, scans[k], w)
+            sums[axis] = sums.get(axis, np.zeros(n)) + (ll - ll[n // 2])
+    return [Profile(model, axis, OFFSETS_DEG if axis == "yaw" else OFFSETS_M, s / max(count, 1))
+            for axis, s in sums.items()]
+
+
 def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: SlamConfig,
              padding: float = 10.0,
              extra: dict[str, tuple[HilbertWeighting, Sequence[BeamSamples], float | None]] | None = None,
@@ -91,6 +126,8 @@ def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: Sl
     ``gt (T, 3)`` are the true poses of ``scans``; every scan before a test scan builds the map (one
     map per model, grown incrementally), the test scan is only scored. ``extra``: more Hilbert rows, each
     a weighting, its own beam samples and its endpoints' noise variance (maps built from them; None: sigma_n^2).
+    With ``cfg.submaps`` set, the rows of :func:`submap_profiles` are added (with ``cfg``'s free weight and, as
+    a second row, without the free samples' terms).
     """
     half, centre = domain_from_trajectory(gt[:, :2], padding)
     basis = hm.make_basis(half, centre, cfg.n_basis, cfg.basis_kind)
@@ -135,8 +172,14 @@ def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: Sl
                 zero = ll[n // 2]
                 sums[(name, axis)] = sums.get((name, axis), np.zeros(n)) + (ll - zero)
     count = sum(1 for k in test if scans[k].n)
-    return [Profile(name, axis, OFFSETS_DEG if axis == "yaw" else OFFSETS_M, s / max(count, 1))
-            for (name, axis), s in sums.items()]
+    out = [Profile(name, axis, OFFSETS_DEG if axis == "yaw" else OFFSETS_M, s / max(count, 1))
+           for (name, axis), s in sums.items()]
+    if cfg.submaps is not None:
+        label = f"hilbert_gp submaps (l = {cfg.submap_lengthscale_m:g} m"
+        out += submap_profiles(gt, scans, test, cfg, label + f", free weight {cfg.free_weight:g})")
+        if cfg.free_weight != 0:
+            out += submap_profiles(gt, scans, test, replace(cfg, free_weight=0.0), label + ", free weight 0)")
+    return out
 
 
 def refinement_bias(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: SlamConfig,
@@ -229,8 +272,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="extra rows: the endpoints' noise variance S2 in the map (free samples keep sigma_n^2)")
     ap.add_argument("--no-et", action="store_true", help="extra row: the weight without the endpoint tolerance")
     ap.add_argument("--refine", action="store_true", help="also the refinement table (where Gauss-Newton ends)")
+    ap.add_argument("--submaps", action="store_true", help="also the weight against local submaps (the slam "
+                    "stage's submap defaults: slam.map = submaps)")
     a = ap.parse_args(argv)
     cfg = SlamConfig(workers=0)
+    if a.submaps:
+        from stages.slam.stage import SlamParams
+
+        sp = SlamParams(map="submaps")
+        cfg = replace(cfg, submaps=sp.config().submaps, submap_lengthscale_m=sp.config().submap_lengthscale_m)
     cases: list[tuple[str, Any]] = [
         (r.name, lambda c=0.0, step=1.0, r=r: run_folder_case(r, free_clearance=c, ray_step=step)) for r in a.runs]
     if not cases:

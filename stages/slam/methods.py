@@ -73,6 +73,8 @@ class SlamConfig:
     #: GMapping's fitted form (``noise``); ``rich_slam_paper`` always takes ``gmapping``. The pure default is
     #: the fitted form; the slam stage's default is ``odometry_covariance``.
     proposal: ProposalKind = "gmapping"
+    #: factor on the odometry's increment covariance in the ``odometry_covariance`` proposal (1: as written)
+    proposal_scale: float = 1.0
     #: each particle's yaw-rate bias state (None: none); ``rich_slam_paper`` never has one
     yaw_bias: YawBias | None = None
     resampling: Resampling = "systematic"
@@ -151,8 +153,8 @@ def make_proposal(method: str, cfg: SlamConfig, motion: OdometryMotion | None, r
     if (kind == "odometry_covariance" or bias is not None) and motion is None:
         raise ValueError(f"{method}: proposal = {kind}{' with the yaw-rate bias state' if bias else ''} needs the "
                          f"odometry's increment covariance and scan intervals (OdometryMotion)")
-    return Proposal(cfg.noise, cfg.n_particles, rng, cov=motion.cov if kind == "odometry_covariance" and motion
-                    else None, dt=None if motion is None else motion.dt, bias=bias)
+    cov = motion.cov * cfg.proposal_scale if kind == "odometry_covariance" and motion is not None else None
+    return Proposal(cfg.noise, cfg.n_particles, rng, cov=cov, dt=None if motion is None else motion.dt, bias=bias)
 
 
 @dataclass

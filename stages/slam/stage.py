@@ -147,6 +147,8 @@ class SlamParams(StageParams):
         "odometry_covariance", description="the filters' proposal noise: the odometry's own per-scan increment "
         "covariance (odometry.parquet cov_*; the default, chosen on the four calibration runs, stages/slam/README.md) "
         "or GMapping's fitted form (motion_*); rich_slam_paper: always gmapping")
+    proposal_scale: float = Field(1.0, gt=0, description="factor on the odometry's increment covariance in the "
+                                  "odometry_covariance proposal (1: the covariance as the odometry writes it)")
     yaw_bias: bool = Field(False, description="each particle carries a yaw-rate bias that corrects its odometry "
                            "heading increment (not rich_slam_paper); off by default: worse on the calibration runs "
                            "whose odometry is good (stages/slam/README.md)")
@@ -226,7 +228,7 @@ class SlamParams(StageParams):
             likelihood_exponent=self.likelihood_exponent, grid_likelihood_exponent=self.grid_likelihood_exponent,
             noise=MotionNoise(self.motion_std_xy, self.motion_std_yaw, self.motion_rel_trans, self.motion_rel_rot,
                               self.motion_rot_per_trans, self.motion_trans_per_rot),
-            proposal=self.proposal,
+            proposal=self.proposal, proposal_scale=self.proposal_scale,
             yaw_bias=YawBias(self.yaw_bias_sigma0, self.yaw_bias_walk) if self.yaw_bias else None,
             resampling=self.resampling, resample_threshold=self.resample_threshold, map_update=self.map_update,
             laplace_iterations=self.laplace_iterations, map_form=self.map_form, dtype=self.dtype,

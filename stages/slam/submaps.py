@@ -135,17 +135,21 @@ class SubmapParticleMaps:
             self.open.append(Submap(basis, self.factory(basis, spare)))
             self.opened += 1
 
+    def weighing(self, poses: F64) -> Submap | None:
+        """The submaps arranged for a scan at ``poses``, and the one it is weighed against: the oldest open
+        submap with data (None before the first scan)."""
+        self._arrange(poses)
+        return next((s for s in self.open if s.scans > 0), None)
+
     def weigh_and_update(self, poses: F64, samples: BeamSamples) -> F64:
         """eq. 22-30 against the oldest open submap with data, then eq. 15 into every open submap."""
         if samples.n == 0:
             return np.zeros(len(poses))
-        self._arrange(poses)
+        target = self.weighing(poses)
         ll: F64 = np.zeros(len(poses))
-        weighed = False
         for s in self.open:
-            if not weighed and s.scans > 0:
+            if s is target:
                 ll = s.maps.weigh_and_update(poses, samples)
-                weighed = True
             else:
                 s.maps.insert(poses, samples)
             s.scans += 1
