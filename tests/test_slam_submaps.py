@@ -157,3 +157,28 @@ def test_worker_submaps_equal_in_process_submaps_and_reuse_their_processes() -> 
         assert all(isinstance(s.maps, ParallelHilbertMaps) for s in theirs.open)
     finally:
         theirs.close()
+
+
+def test_hybrid_maps_weigh_half_against_each_and_the_stage_builds_them() -> None:
+    """``slam.map = hybrid``: every scan's log-likelihood is half the global map's and half the submaps', each
+    map updated as when it runs alone."""
+    from stages.slam.methods import make_hilbert_maps
+    from stages.slam.stage import SlamParams
+    from stages.slam.submaps import HybridParticleMaps
+
+    cfg = SlamParams(map="hybrid", workers=0, submap_n_basis=16, n_basis=16).config()
+    assert cfg.submap_share == 0.5 and SlamParams(map="submaps").config().submap_share == 1.0
+    basis = hm.make_basis([20.0, 20.0], [0.0, 0.0], 16)
+    hyb = make_hilbert_maps(cfg, basis, "rich_slam", 4, "information")
+    assert isinstance(hyb, HybridParticleMaps)
+    glob = make_hilbert_maps(SlamParams(workers=0, n_basis=16).config(), basis, "rich_slam", 4, "information")
+    local = make_hilbert_maps(SlamParams(map="submaps", workers=0, submap_n_basis=16).config(), basis, "rich_slam", 4,
+                              "information")
+    rng = np.random.default_rng(5)
+    pose: np.ndarray = np.zeros(3)
+    for _ in range(30):
+        pose = compose(pose, np.array([0.3, 0.0, 0.02]))
+        poses = pose + rng.normal(0.0, [0.05, 0.05, 0.01], (4, 3))
+        s = _scan(rng)
+        expect = 0.5 * glob.weigh_and_update(poses, s) + 0.5 * local.weigh_and_update(poses, s)
+        np.testing.assert_allclose(hyb.weigh_and_update(poses, s), expect, rtol=1e-10, atol=1e-12)

@@ -33,7 +33,7 @@ from stages.slam.rbpf import (
     YawBias,
     odometry_increments,
 )
-from stages.slam.submaps import SubmapModel, SubmapParticleMaps
+from stages.slam.submaps import HybridParticleMaps, SubmapModel, SubmapParticleMaps
 
 Method = Literal["odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only",
                  "rich_slam_refined", "rich_slam_paper"]
@@ -105,6 +105,9 @@ class SlamConfig:
     submaps: SubmapModel | None = None
     #: SE length scale of the submaps (m); the global map takes ``lengthscale_m``
     submap_lengthscale_m: float = 1.0
+    #: with submaps: the share of each scan's log-likelihood taken against them; the rest against the global
+    #: map, which is then kept too (1: submaps alone)
+    submap_share: float = 1.0
 
     def for_method(self, method: str) -> SlamConfig:
         """The configuration a method runs with: ``rich_slam_paper`` (:data:`PAPER_METHODS`) is the paper's
@@ -216,17 +219,19 @@ def choose_form(cfg: SlamConfig, method: str, scans: Sequence[BeamSamples], M: i
 
 def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_particles: int,
                       form: Literal["information", "covariance"] = "information",
-                      ) -> HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps:
+                      ) -> HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps | HybridParticleMaps:
     """The particle maps of a Hilbert method: local submaps (in process) when ``cfg.submaps`` is set, else one
     global map over ``basis``; in ``workers`` processes when ``workers > 0``."""
-    if cfg.submaps is not None:
-        model = replace(cfg.map_model(method, form), lengthscale=cfg.submap_lengthscale_m)
-        if cfg.workers > 0:
-            return SubmapParticleMaps(cfg.submaps, submap_factory(n_particles, model, cfg.workers), cfg.basis_kind)
-        return SubmapParticleMaps.create(cfg.submaps, n_particles, model, cfg.basis_kind)
     factory: Callable[..., HilbertParticleMaps | ParallelHilbertMaps] = (
         partial(ParallelHilbertMaps, workers=cfg.workers) if cfg.workers > 0 else HilbertParticleMaps)
-    return factory(basis, n_particles, cfg.map_model(method, form))
+    if cfg.submaps is None:
+        return factory(basis, n_particles, cfg.map_model(method, form))
+    model = replace(cfg.map_model(method, form), lengthscale=cfg.submap_lengthscale_m)
+    local = (SubmapParticleMaps(cfg.submaps, submap_factory(n_particles, model, cfg.workers), cfg.basis_kind)
+             if cfg.workers > 0 else SubmapParticleMaps.create(cfg.submaps, n_particles, model, cfg.basis_kind))
+    if cfg.submap_share >= 1.0:
+        return local
+    return HybridParticleMaps(factory(basis, n_particles, cfg.map_model(method, form)), local, cfg.submap_share)
 
 
 Observer = Callable[[int, RBPF, int], None]
@@ -260,7 +265,8 @@ def run_method(
         raise ValueError(f"unknown method {method!r}; one of {', '.join(METHODS)}")
     proposal = make_proposal(method, cfg, motion, rng)
     form: Literal["information", "covariance"] = "information"
-    maps: GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps | None = None
+    maps: (GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps | HybridParticleMaps
+           | None) = None
     if method == "fastslam_grid":
         spec = make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution)
         maps = GridParticleMaps(spec, cfg.n_particles, cfg.grid, cfg.grid_likelihood_exponent)
@@ -292,7 +298,7 @@ def run_method(
                      refinement=refinement, basis=basis, exponent=cfg.likelihood_exponent, proposal=proposal)
             h = f.run(odometry_increments(odometry), scans, observer=keep_best, on_step=on_step)
         finally:
-            if isinstance(maps, ParallelHilbertMaps | SubmapParticleMaps):
+            if isinstance(maps, ParallelHilbertMaps | SubmapParticleMaps | HybridParticleMaps):
                 maps.close()
     estimates = {"best_per_scan": h.best_trajectory(), "final_best_history": h.final_best_history(),
                  "weighted_mean": h.mean_trajectory()}
@@ -302,7 +308,8 @@ def run_method(
         np.asarray(h.particles), best_map.get("theta"), best_map.get("cov"),
         form if method in HILBERT_METHODS else "", device,
         np.asarray(h.yaw_bias) if proposal.bias is not None else None, estimates,
-        maps.opened if isinstance(maps, SubmapParticleMaps) else 0,
+        maps.opened if isinstance(maps, SubmapParticleMaps) else
+        maps.local.opened if isinstance(maps, HybridParticleMaps) else 0,
     )
 
 

@@ -72,9 +72,10 @@ class SlamParams(StageParams):
     basis_kind: Literal["tensor", "circular"] = Field("tensor", description="'tensor': eq. 7; 'circular': the M "
                                                       "smallest eigenvalues (Solin and Sarkka's code)")
     domain_padding: float = Field(10.0, ge=0, description="Hilbert domain = odometry envelope padded by this (m)")
-    map: Literal["global", "submaps"] = Field(
+    map: Literal["global", "submaps", "hybrid"] = Field(
         "global", description="the Hilbert filters' particle maps: one global map over the odometry's envelope (the "
-        "paper) or local submaps that move with the robot (stages/slam/submaps.py; rich_slam_paper: always global)")
+        "paper), local submaps that move with the robot (stages/slam/submaps.py), or both, each scan weighed half "
+        "against each (hybrid); rich_slam_paper and rich_slam_refined: always global")
     submap_half_width: float = Field(9.0, gt=0, description="submaps: half width of each square submap (m); must "
                                      "exceed max_range + endpoint_tolerance + 0.5")
     submap_n_basis: int = Field(256, ge=1, description="submaps: basis functions per submap (a perfect square for "
@@ -184,7 +185,7 @@ class SlamParams(StageParams):
         if self.basis_kind == "tensor" and round(self.n_basis**0.5) ** 2 != self.n_basis:
             raise ValueError(f"n_basis = {self.n_basis} is not a perfect square (the tensor basis of eq. 7 needs one;"
                              " or set basis_kind = 'circular')")
-        if self.map == "submaps":
+        if self.map != "global":
             if self.basis_kind == "tensor" and round(self.submap_n_basis**0.5) ** 2 != self.submap_n_basis:
                 raise ValueError(f"submap_n_basis = {self.submap_n_basis} is not a perfect square (the tensor basis "
                                  "of eq. 7 needs one; or set basis_kind = 'circular')")
@@ -195,8 +196,8 @@ class SlamParams(StageParams):
             hil = [m for m in dict.fromkeys([self.method, *self.methods]) if m in HILBERT_METHODS
                    and m not in (*PAPER_METHODS, *REFINED_METHODS)]
             if self.backend == "torch" and hil:
-                raise ValueError(f"map = submaps runs on the numpy backend only ({', '.join(hil)}): set slam.backend "
-                                 "= numpy or slam.map = global")
+                raise ValueError(f"map = {self.map} runs on the numpy backend only ({', '.join(hil)}): set "
+                                 "slam.backend = numpy or slam.map = global")
         if self.z_min is not None and self.z_max is not None and self.z_min > self.z_max:
             raise ValueError(f"z_min {self.z_min} > z_max {self.z_max}")
         if self.backend == "torch" and self.map_update != "kalman":
@@ -219,7 +220,8 @@ class SlamParams(StageParams):
 
     def config(self) -> SlamConfig:
         return SlamConfig(
-            submaps=self.submap_model() if self.map == "submaps" else None,
+            submaps=self.submap_model() if self.map != "global" else None,
+            submap_share=0.5 if self.map == "hybrid" else 1.0,
             submap_lengthscale_m=self.submap_lengthscale * self.length_unit_m,
             n_particles=self.n_particles, lengthscale_m=self.lengthscale * self.length_unit_m,
             signal_variance=self.signal_variance, noise_variance=self.noise_variance, n_basis=self.n_basis,

@@ -173,3 +173,38 @@ class SubmapParticleMaps:
             if close is not None:
                 close()
         self.open, self.spare = [], []
+
+
+@dataclass
+class HybridParticleMaps:
+    """``ParticleMaps`` that weigh every scan against both the global map (``whole``: the paper's, which can
+    close loops) and the local submaps (``local``: the detail the global basis cannot hold), each log-likelihood
+    taken with ``share`` of the scan (``share`` on the submaps', ``1 - share`` on the global's), and update both."""
+
+    whole: Any
+    local: SubmapParticleMaps
+    share: float = 0.5
+
+    def weigh_and_update(self, poses: F64, samples: BeamSamples) -> F64:
+        from stages.slam.rbpf import weigh_and_update
+
+        g = weigh_and_update(self.whole, poses, samples)
+        s = self.local.weigh_and_update(poses, samples)
+        return np.asarray((1.0 - self.share) * g + self.share * s)
+
+    def log_likelihood(self, poses: F64, samples: BeamSamples) -> F64:
+        """Weights and update in one call (the filter always updates right after weighting)."""
+        return self.weigh_and_update(poses, samples)
+
+    def update(self, poses: F64, samples: BeamSamples) -> None:
+        """Done in :meth:`log_likelihood`."""
+
+    def select(self, indices: npt.NDArray[np.int64]) -> None:
+        self.whole.select(indices)
+        self.local.select(indices)
+
+    def close(self) -> None:
+        close = getattr(self.whole, "close", None)
+        if close is not None:
+            close()
+        self.local.close()
