@@ -28,6 +28,7 @@ from schemas.io import read_artifact, write_artifact
 from stages.slam import hilbert_map as hm
 from stages.slam.backend import resolve_device
 from stages.slam.beam_sampling import BeamSamples, radar_to_body_2d, sample_beams, to_world
+from stages.slam.divergence import heading_deviation
 from stages.slam.grid_map import GridModel
 from stages.slam.methods import (
     HILBERT_METHODS,
@@ -174,6 +175,10 @@ class SlamParams(StageParams):
     grid_z_hit: float = Field(0.9, gt=0, description="likelihood-field hit weight")
     grid_z_rand: float = Field(0.1, gt=0, description="likelihood-field random weight (keeps logs finite)")
     # -- outputs
+    deviation_warn_sigmas: float = Field(
+        3.0, gt=0, description="warn when a filter's heading leaves the odometry's by more than this many sigma of "
+        "the odometry's accumulated heading uncertainty (stages/slam/divergence.py); the value is in the manifest "
+        "either way")
     grid_spacing: float = Field(0.25, gt=0, description="spacing of the query grid of map_grid.parquet (m)")
     stats_every: int = Field(5, ge=1, description="map_stats.parquet: uncertainty quartiles every N scans")
     stats_spacing: float = Field(1.0, gt=0, description="map_stats.parquet: spacing of the cells summarised (m)")
@@ -302,6 +307,14 @@ class SlamStage(Stage):
                 }
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
                                   f"s/scan), {res.resampled} resamplings[/]")
+                if m != "odometry":
+                    dev = heading_deviation(odo, res.poses, inc_cov)
+                    ctx.stats["methods"][m]["heading_deviation_sigmas"] = round(dev.sigmas, 2)
+                    if dev.sigmas > p.deviation_warn_sigmas:
+                        ctx.warn(f"{m}'s heading left the odometry's by {dev.degrees:.1f} deg at scan "
+                                 f"{int(scans[dev.index])}, {dev.sigmas:.1f} sigma of the odometry's own accumulated "
+                                 f"heading uncertainty ({dev.sigma_degrees:.2f} deg): it corrected a drift or it "
+                                 f"diverged; compare trajectory_{m}.parquet with trajectory_odometry.parquet")
         main = results[p.method]
         write_trajectory(ctx.output("trajectory.parquet"), scans, t_ns, main)
         if main.theta is None or main.cov is None:
