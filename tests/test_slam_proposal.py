@@ -38,6 +38,25 @@ def test_odometry_covariance_proposal_has_that_covariance_and_bias_corrects_yaw(
         Proposal(MotionNoise(), 3, np.random.default_rng(0), bias=YawBias())
 
 
+def test_a_share_of_the_particles_carries_the_bias_the_rest_none_through_walks_and_resampling() -> None:
+    """``YawBias.share``: the first share of the particles draw a bias and walk it; the others keep b = 0 (their
+    heading is the odometry's plus noise), and resampling carries which is which. share = 1 draws as before."""
+    n, dt = 10, np.full(6, 0.1)
+    full = Proposal(MotionNoise(), n, np.random.default_rng(3), dt=dt, bias=YawBias(0.01, 1e-3))
+    half = Proposal(MotionNoise(), n, np.random.default_rng(3), dt=dt, bias=YawBias(0.01, 1e-3, share=0.5))
+    assert full.carries is None and half.carries is not None and half.bias is not None and full.bias is not None
+    np.testing.assert_array_equal(half.bias[:5], full.bias[:5])  # the same draws, the rest zeroed
+    assert np.all(half.bias[5:] == 0.0) and np.all(full.bias[5:] != 0.0)
+    for _ in range(3):
+        half.draw([0.1, 0.0, 0.0], n)
+    assert np.all(half.bias[5:] == 0.0) and np.all(half.bias[:5] != 0.0)
+    idx = np.array([9, 9, 0, 1, 5, 6, 2, 3, 4, 8])
+    half.select(idx)
+    np.testing.assert_array_equal(half.carries, idx < 5)
+    half.draw([0.1, 0.0, 0.0], n)
+    assert np.all(half.bias[idx >= 5] == 0.0)
+
+
 def test_run_method_refuses_the_odometry_covariance_without_it() -> None:
     run = make_run(5, np.random.default_rng(0))
     basis = hm.make_basis([10.0, 10.0], [0.0, 0.0], 16)

@@ -81,6 +81,9 @@ class YawBias:
     #: random-walk density, rad/s/sqrt(s): 3DM-GX5 in-run bias instability 8 deg/h (3.9e-5 rad/s) over a
     #: 100 s correlation time, 3.9e-5 / sqrt(100)
     walk: float = 3.9e-6
+    #: the share of the particles that carry a bias; the others keep b = 0 (the odometry's heading as it is),
+    #: so the weights choose between "the odometry drifts" and "it does not" (1: every particle)
+    share: float = 1.0
 
 
 class Proposal:
@@ -103,6 +106,11 @@ class Proposal:
             w, V = np.linalg.eigh(0.5 * (c + np.swapaxes(c, 1, 2)))
             self.chol = V * np.sqrt(np.maximum(w, 0.0))[:, None, :]  # L L^T = cov, also when singular
         self.bias: F64 | None = None if bias is None else rng.normal(0.0, bias.sigma0, n_particles)
+        #: which particles carry a bias (``YawBias.share``: the first of them); resampled with them
+        self.carries: npt.NDArray[np.bool_] | None = None
+        if bias is not None and self.bias is not None and bias.share < 1.0:
+            self.carries = np.arange(n_particles) < round(bias.share * n_particles)
+            self.bias = np.where(self.carries, self.bias, 0.0)
         self._i = 0
 
     def _step(self) -> tuple[int, float]:
@@ -111,7 +119,8 @@ class Proposal:
 
     def _walk(self, dt: float) -> None:
         if self.bias is not None and self.model is not None and self.model.walk > 0:
-            self.bias = self.bias + self.model.walk * np.sqrt(max(dt, 0.0)) * self.rng.standard_normal(len(self.bias))
+            step = self.model.walk * np.sqrt(max(dt, 0.0)) * self.rng.standard_normal(len(self.bias))
+            self.bias = self.bias + (step if self.carries is None else np.where(self.carries, step, 0.0))
 
     def corrected(self, u: npt.ArrayLike, n: int, dt: float) -> F64:
         """``(n, 3)``: the increment with each particle's bias taken off its yaw."""
@@ -149,6 +158,8 @@ class Proposal:
         """Survivors after resampling carry their biases."""
         if self.bias is not None:
             self.bias = self.bias[np.asarray(indices)]
+        if self.carries is not None:
+            self.carries = self.carries[np.asarray(indices)]
 
     def bias_mean(self, w: F64) -> float:
         """The weighted mean bias (nan without the bias state)."""

@@ -158,6 +158,9 @@ class SlamParams(StageParams):
                                    "bias prior, odometry.sigma_gyro_bias0)")
     yaw_bias_walk: float = Field(3.9e-6, ge=0, description="yaw-rate bias random walk, rad/s/sqrt(s) (3DM-GX5 "
                                  "in-run bias instability 8 deg/h over a 100 s correlation time)")
+    yaw_bias_share: float = Field(1.0, gt=0, le=1, description="share of the particles that carry the yaw-rate bias; "
+                                  "the others keep none, so the weights choose between a drifting and a good "
+                                  "odometry (1: all)")
     resampling: Literal["systematic", "stratified", "multinomial"] = Field(
         "systematic", description="resampler (systematic = low variance)")
     resample_threshold: float = Field(0.5, gt=0, le=1, description="resample when N_eff < this * N_p (eq. 31)")
@@ -236,7 +239,7 @@ class SlamParams(StageParams):
             noise=MotionNoise(self.motion_std_xy, self.motion_std_yaw, self.motion_rel_trans, self.motion_rel_rot,
                               self.motion_rot_per_trans, self.motion_trans_per_rot),
             proposal=self.proposal, proposal_scale=self.proposal_scale,
-            yaw_bias=YawBias(self.yaw_bias_sigma0, self.yaw_bias_walk) if self.yaw_bias else None,
+            yaw_bias=YawBias(self.yaw_bias_sigma0, self.yaw_bias_walk, self.yaw_bias_share) if self.yaw_bias else None,
             resampling=self.resampling, resample_threshold=self.resample_threshold, map_update=self.map_update,
             laplace_iterations=self.laplace_iterations, map_form=self.map_form, dtype=self.dtype,
             workers=self.workers, backend=self.backend, device=self.device, torch_threads=self.torch_threads,
