@@ -27,7 +27,7 @@ import numpy.typing as npt
 
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.rbpf import HilbertParticleMaps, MapModel
+from stages.slam.rbpf import HilbertParticleMaps, MapModel, weigh_and_update
 
 F64 = npt.NDArray[np.floating[Any]]
 
@@ -186,8 +186,6 @@ class HybridParticleMaps:
     share: float = 0.5
 
     def weigh_and_update(self, poses: F64, samples: BeamSamples) -> F64:
-        from stages.slam.rbpf import weigh_and_update
-
         g = weigh_and_update(self.whole, poses, samples)
         s = self.local.weigh_and_update(poses, samples)
         return np.asarray((1.0 - self.share) * g + self.share * s)
