@@ -118,7 +118,7 @@ def run(quick: bool = False) -> list[Result]:
     cfg = SlamConfig()
     densities = (("sparse", 6), ("medium", 30), ("dense", 80))
     main, torch_rows, refined, local = [], [], [], []
-    sub = replace(cfg, submaps=SubmapModel(9.0, 256, 5.25), free_weight=0.0)
+    sub = replace(cfg, submaps=SubmapModel())  # slam.map = submaps at the stage's defaults
     for label, beams in densities:  # interleaved, the machine may be shared
         main.append((label, _time_filter(cfg, beams, steps, 256)))
         refined.append(_time_filter(cfg, beams, steps, 256, refined=True))

@@ -84,6 +84,14 @@ def offset_poses(pose: F64, axis: str) -> tuple[F64, F64]:
     return compose(np.repeat(pose[None, :], len(offs), 0), delta), offs
 
 
+def hilbert_at(basis: hm.HilbertBasis, theta: F64, cov: F64, poses: F64, samples: BeamSamples,
+               weighting: HilbertWeighting) -> F64:
+    """The scan's Hilbert log-likelihood at each of ``poses`` against one map (``theta``, ``cov``)."""
+    n = len(poses)
+    return hilbert_log_likelihood(basis, np.repeat(theta[None], n, 0), np.repeat(cov[None], n, 0), poses, samples,
+                                  weighting)
+
+
 def submap_profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: SlamConfig,
                     model: str = "hilbert_gp submaps") -> list[Profile]:
     """Profiles of the weight against local submaps (``cfg.submaps``, ``cfg.submap_lengthscale_m``): the
@@ -110,8 +118,7 @@ def submap_profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], 
         for axis in ("forward", "lateral", "yaw"):
             poses, _ = offset_poses(gt[k], axis)
             n = len(poses)
-            ll = hilbert_log_likelihood(target.basis, np.repeat(theta[None], n, 0), np.repeat(cov[None], n, 0),
-                                        poses, scans[k], w)
+            ll = hilbert_at(target.basis, theta, cov, poses, scans[k], w)
             sums[axis] = sums.get(axis, np.zeros(n)) + (ll - ll[n // 2])
     return [Profile(model, axis, OFFSETS_DEG if axis == "yaw" else OFFSETS_M, s / max(count, 1))
             for axis, s in sums.items()]
@@ -167,8 +174,7 @@ def profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], cfg: Sl
                                                          to_world(poses, scans[k].endpoints), grid.model)
                 else:
                     theta, cov = posts[id(mx)]
-                    ll = hilbert_log_likelihood(basis, np.repeat(theta[None], n, 0), np.repeat(cov[None], n, 0),
-                                                poses, sx[k], weighting)
+                    ll = hilbert_at(basis, theta, cov, poses, sx[k], weighting)
                 zero = ll[n // 2]
                 sums[(name, axis)] = sums.get((name, axis), np.zeros(n)) + (ll - zero)
     count = sum(1 for k in test if scans[k].n)
@@ -279,8 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.submaps:
         from stages.slam.stage import SlamParams
 
-        sp = SlamParams(map="submaps")
-        cfg = replace(cfg, submaps=sp.config().submaps, submap_lengthscale_m=sp.config().submap_lengthscale_m)
+        sub = SlamParams(map="submaps").config()
+        cfg = replace(cfg, submaps=sub.submaps, submap_lengthscale_m=sub.submap_lengthscale_m)
     cases: list[tuple[str, Any]] = [
         (r.name, lambda c=0.0, step=1.0, r=r: run_folder_case(r, free_clearance=c, ray_step=step)) for r in a.runs]
     if not cases:

@@ -220,8 +220,8 @@ def choose_form(cfg: SlamConfig, method: str, scans: Sequence[BeamSamples], M: i
 def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_particles: int,
                       form: Literal["information", "covariance"] = "information",
                       ) -> HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps | HybridParticleMaps:
-    """The particle maps of a Hilbert method: local submaps (in process) when ``cfg.submaps`` is set, else one
-    global map over ``basis``; in ``workers`` processes when ``workers > 0``."""
+    """The particle maps of a Hilbert method: one global map over ``basis``, local submaps when ``cfg.submaps`` is
+    set, or both (``cfg.submap_share < 1``); each map in ``workers`` processes when ``workers > 0``."""
     factory: Callable[..., HilbertParticleMaps | ParallelHilbertMaps] = (
         partial(ParallelHilbertMaps, workers=cfg.workers) if cfg.workers > 0 else HilbertParticleMaps)
     if cfg.submaps is None:

@@ -99,7 +99,6 @@ class ParallelHilbertMaps:
     ) -> None:
         self.model = model
         dtype, form = model.dtype, model.form
-        self.basis = basis
         self.dtype = np.dtype(dtype)
         self.form = form
         M = basis.M

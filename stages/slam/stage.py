@@ -190,13 +190,12 @@ class SlamParams(StageParams):
 
     @model_validator(mode="after")
     def _check(self) -> SlamParams:
-        if self.basis_kind == "tensor" and round(self.n_basis**0.5) ** 2 != self.n_basis:
-            raise ValueError(f"n_basis = {self.n_basis} is not a perfect square (the tensor basis of eq. 7 needs one;"
-                             " or set basis_kind = 'circular')")
+        sizes = {"n_basis": self.n_basis, **({"submap_n_basis": self.submap_n_basis} if self.map != "global" else {})}
+        for name, M in sizes.items():
+            if self.basis_kind == "tensor" and round(M**0.5) ** 2 != M:
+                raise ValueError(f"{name} = {M} is not a perfect square (the tensor basis of eq. 7 needs one; or set "
+                                 "basis_kind = 'circular')")
         if self.map != "global":
-            if self.basis_kind == "tensor" and round(self.submap_n_basis**0.5) ** 2 != self.submap_n_basis:
-                raise ValueError(f"submap_n_basis = {self.submap_n_basis} is not a perfect square (the tensor basis "
-                                 "of eq. 7 needs one; or set basis_kind = 'circular')")
             try:
                 self.submap_model()
             except ValueError as exc:

@@ -124,10 +124,12 @@ class SubmapParticleMaps:
         """Close the submaps the robot has left, open one where it is half a window from every open one."""
         g = self.geometry
         c = np.mean(np.asarray(poses, dtype=np.float64)[:, :2], axis=0)
-        for s in [s for s in self.open if self._distance(s, c) > g.window]:
-            self._close(s)
-        self.open = [s for s in self.open if self._distance(s, c) <= g.window]
-        if not any(self._distance(s, c) <= g.window / 2 for s in self.open):
+        dist = [self._distance(s, c) for s in self.open]
+        for s, d in zip(self.open, dist, strict=True):
+            if d > g.window:
+                self._close(s)
+        self.open = [s for s, d in zip(self.open, dist, strict=True) if d <= g.window]
+        if not any(d <= g.window / 2 for d in dist):
             if len(self.open) >= g.max_open:
                 self._close(self.open.pop(0))
             basis = hm.make_basis([g.half_width, g.half_width], c, g.n_basis, self.basis_kind)
