@@ -35,7 +35,7 @@ def test_submaps_follow_the_robot_and_hold_every_sample_they_take() -> None:
         pose = compose(pose, np.array([0.2, 0.0, 0.004]))
         poses = pose + rng.normal(0.0, [0.05, 0.05, 0.01], (4, 3))
         s = _scan(rng)
-        before = {id(sm): sm.scans for sm in maps.open}
+        before = [(sm, sm.scans) for sm in maps.open]  # hold the objects: a freed submap's id() can be reused
         ll = maps.weigh_and_update(poses, s)
         assert 1 <= len(maps.open) <= g.max_open
         for sm in maps.open:
@@ -43,7 +43,8 @@ def test_submaps_follow_the_robot_and_hold_every_sample_they_take() -> None:
         if i and np.ptp(ll) > 0:
             weighed_from_data += 1
         assert ll.shape == (4,) and np.all(np.isfinite(ll))
-        assert all(sm.scans == before.get(id(sm), 0) + 1 for sm in maps.open)  # every open submap took the scan
+        held = [next((n for old, n in before if old is sm), 0) for sm in maps.open]
+        assert [sm.scans for sm in maps.open] == [n + 1 for n in held]  # every open submap took the scan
     travelled = 200 * 0.2
     assert travelled / g.window <= maps.opened <= 2 * travelled / g.window + 2
     assert weighed_from_data >= 190  # every scan but the first is weighed against a map that has seen scans
