@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from stages.ingest.geometry import pose_matrix
-from stages.odometry.ekf_rio import EkfConfig, find_standstill, radar_moving, run_ekf
+from stages.odometry.ekf_rio import EkfConfig, EkfResult, EkfRio, find_standstill, radar_moving, run_ekf
 from tests.test_filter_scene import circle_run
 from tests.test_ingest_logs import BASE_FROM_IMU
 
@@ -100,3 +101,61 @@ def test_recovery_follows_the_radar_instead_of_rejecting_it_forever() -> None:
     stats_off, v_off, _ = _circle(offset_from=100, recover_after=10 ** 6)
     assert stats_off["recoveries"] == 0 and stats_off["velocity_rejected"] > 50
     assert np.abs(v_off[110:, 0] - target[110:, 0]).mean() > base + 0.2
+
+
+def _pitched_mount(mount_sigma0: float, level_sigma: float) -> tuple[EkfResult, np.ndarray, np.ndarray]:
+    """A level 30 s circle at 1 m/s whose radar is truly pitched by 1.5 deg against its stated mount: the filter
+    is given the stated extrinsic; returns the result, the true mount error and the scans' true heights (0)."""
+    run = circle_run(duration=30.0, seed=0, gyro_noise=1.5e-4, accel_noise=6e-4, clutter=0, ghosts=0)
+    sc = run.scene
+    scan_t = np.array([t for t, _ in sc.radar], dtype=np.int64)
+    err = np.radians([1.5, 0.0, 0.0])  # about the radar's x axis (it looks sideways): forward speed read as climb
+    R_err = Rotation.from_rotvec(err).as_matrix()
+    rng = np.random.default_rng(2)
+    vel = run.v_radar @ R_err + rng.normal(0, 0.02, run.v_radar.shape)  # R_err^T v: the truly mounted radar
+    cov = np.tile(np.eye(3) * 0.02 ** 2, (len(scan_t), 1, 1))
+    imu_from_radar = np.linalg.inv(pose_matrix(*BASE_FROM_IMU)) @ run.base_from_radar
+    res = run_ekf(sc.imu_t, sc.imu[:, :3], sc.imu[:, 3:], scan_t, vel, cov, np.full(len(scan_t), 3),
+                  np.ones(len(scan_t), bool), imu_from_radar,
+                  EkfConfig(mount_sigma0=mount_sigma0, level_velocity_sigma=level_sigma))
+    return res, err, np.zeros(len(scan_t))
+
+
+def test_mount_pitch_estimated_with_the_level_prior_and_the_height_stops_drifting() -> None:
+    """A pitched radar makes EKF-RIO climb (the stated mount reads forward speed as vertical); with the mount
+    state and the level prior the pitch is estimated within 3 sigma, its sigma shrinks, and z stays put."""
+    plain, err, _ = _pitched_mount(0.0, 0.0)
+    z_plain = plain.T_world_imu[-1, 2, 3]
+    assert abs(z_plain) > 0.5  # ~30 m * sin(1.5 deg) = 0.79 m of made-up height
+    res, err, _ = _pitched_mount(np.radians(3.0), 0.2)
+    assert abs(res.mount_error[-1, 0] - err[0]) < 3 * res.mount_sigma[-1, 0]
+    assert res.mount_sigma[-1, 0] < 0.3 * np.radians(3.0)
+    assert abs(res.T_world_imu[-1, 2, 3]) < 0.2 * abs(z_plain)
+    # the mount state alone cannot tell a pitched radar from a real climb at constant speed: unobservable
+    alone, _, _ = _pitched_mount(np.radians(3.0), 0.0)
+    assert alone.mount_sigma[-1, 0] > 0.8 * np.radians(3.0)
+    # without the state, the level prior alone only pulls the height part of the way (the radar keeps pushing)
+    level, _, _ = _pitched_mount(0.0, 0.2)
+    assert abs(level.T_world_imu[-1, 2, 3]) > abs(res.T_world_imu[-1, 2, 3])
+
+
+def test_level_update_is_a_schmidt_update_on_height_vertical_velocity_and_mount() -> None:
+    """The level pseudo-measurement moves only p_z, v_z and the mount (attitude, biases and the planar state
+    keep their means even where the covariance correlates them); the full update moves them too."""
+    rng = np.random.default_rng(3)
+    for schmidt in (True, False):
+        ekf = EkfRio(EkfConfig(mount_sigma0=np.radians(2.0), level_schmidt=schmidt), np.eye(3),
+                     np.array([1.0, 0.0, 0.1]))
+        A = rng.normal(0, 0.05, (18, 18))
+        ekf.P = ekf.P + A @ A.T  # correlated, positive definite
+        before = (ekf.p.copy(), ekf.v.copy(), ekf.R.copy(), ekf.bg.copy(), ekf.ba.copy())
+        assert ekf.update_level(0.2)
+        moved = [not np.allclose(a, b) for a, b in zip((ekf.p, ekf.v, ekf.R, ekf.bg, ekf.ba), before, strict=True)]
+        assert ekf.v[2] != before[1][2] and np.any(ekf.mount != 0)
+        if schmidt:
+            assert moved == [True, True, False, False, False]
+            np.testing.assert_array_equal(ekf.p[:2], before[0][:2])
+            np.testing.assert_array_equal(ekf.v[:2], before[1][:2])
+        else:
+            assert all(moved)
+        assert np.all(np.linalg.eigvalsh(ekf.P) > 0)

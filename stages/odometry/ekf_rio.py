@@ -10,9 +10,21 @@ Propagation (zero-order hold of each IMU sample, world gravity g = (0, 0, -|g|))
 
 Measurement (radar velocity in the radar frame; extrinsic imu <- radar = (R_ir, t_ir)):
 ``v_r = R_ir^T (R^T v + w x t_ir)`` with ``H_v = R_ir^T R^T``, ``H_theta = R_ir^T [R^T v]x``,
-``H_bg = R_ir^T [t_ir]x``; a chi-square gate rejects outliers. Scans the estimator marks as zero
-velocity for at least ``zero_rate_min_scans`` scans in a row also give a zero-angular-rate update
-(``w_m - b_g = 0``), which makes the gyro bias observable whenever the platform stands still.
+``H_bg = R_ir^T [t_ir]x``; a chi-square gate rejects outliers.
+
+Mounting error (``mount_sigma0 > 0``): the error state gains the radar mount's rotation error ``dphi`` (3,
+radar frame, ``R_ir = R_ir_hat Exp(dphi)``, a constant with prior std ``mount_sigma0``), so
+``v_r = Exp(-dphi) R_ir_hat^T u ~ R_ir_hat^T u + [R_ir_hat^T u]x dphi`` with ``u = R^T v + w x t_ir``:
+``H_phi = [R_ir_hat^T u]x``. A radar pitched against its stated mount reads part of the forward speed as
+climb. At constant speed that is a real climb to the filter (the mount alone is unobservable: only speed
+changes show it to the IMU's vertical channel, which handheld process noise drowns). The level prior
+(``level_velocity_sigma > 0``, a zero vertical-velocity pseudo-measurement at every scan; by default a Schmidt
+update of p_z, v_z and the mount only) makes the pitch observable: a climb proportional to the speed, which
+the prior denies, is then the mount's.
+
+Scans the estimator marks as zero velocity for at least ``zero_rate_min_scans`` scans in a row also give a
+zero-angular-rate update (``w_m - b_g = 0``), which makes the gyro bias observable whenever the platform stands
+still.
 
 Real MEMS IMUs (handheld or vehicle): when the log starts with a standstill (IMU specific force and rate
 steady, radar speed near zero, at least ``standstill_min_s``), the filter starts from it: attitude from the
@@ -96,6 +108,13 @@ class EkfConfig:
     recover_sigma_v: float = 0.5
     recover_sigma_attitude: float = np.radians(5.0)
     recover_sigma_accel_bias: float = 0.3
+    #: prior std of the radar mount's rotation error (rad, each axis); 0: the stated extrinsic is exact (15 states)
+    mount_sigma0: float = 0.0
+    #: std of a zero vertical-velocity pseudo-measurement at every scan (m/s; 0: none): the platform moves on
+    #: level floors, on average (it makes the mount's pitch observable at constant speed)
+    level_velocity_sigma: float = 0.0
+    #: the level pseudo-measurement corrects only the height, vertical velocity and mount (attitude, biases kept)
+    level_schmidt: bool = True
 
 
 @dataclass
@@ -118,6 +137,10 @@ class EkfResult:
     #: this filter under that noise); zero up to the filter's first scan
     pose_pair_cov: F64 = field(default_factory=lambda: np.zeros((0, 12, 12)))
     stats: dict[str, Any] = field(default_factory=dict)
+    #: the estimated mount rotation error per scan (rotation vector, radar frame, rad; zero without the state)
+    mount_error: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    #: its std per scan (rad)
+    mount_sigma: F64 = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 @dataclass(frozen=True)
@@ -189,6 +212,10 @@ class EkfRio:
 
     def __init__(self, cfg: EkfConfig, R0: F64, v0: F64) -> None:
         self.cfg = cfg
+        #: error-state size: 15, or 18 with the mount rotation error
+        self.n = 18 if cfg.mount_sigma0 > 0 else 15
+        #: the mount rotation correction (radar frame): R_ir = R_ir_stated Exp(mount)
+        self.mount = np.zeros(3)
         self.p = np.zeros(3)
         self.v = np.asarray(v0, dtype=np.float64).copy()
         self.R = np.asarray(R0, dtype=np.float64).copy()
@@ -196,7 +223,8 @@ class EkfRio:
         self.ba = np.zeros(3)
         self.g = np.array([0.0, 0.0, -cfg.gravity])
         s = np.r_[np.zeros(3), np.full(3, cfg.sigma_v0), np.full(2, cfg.sigma_attitude0), 1e-6,
-                  np.full(3, cfg.sigma_gyro_bias0), np.full(3, cfg.sigma_accel_bias0)]
+                  np.full(3, cfg.sigma_gyro_bias0), np.full(3, cfg.sigma_accel_bias0),
+                  np.full(self.n - 15, cfg.mount_sigma0)]
         self.P = np.diag(s ** 2)
         q = np.r_[np.full(3, cfg.accel_noise_density ** 2), np.full(3, cfg.gyro_noise_density ** 2),
                   np.full(3, cfg.gyro_bias_walk ** 2), np.full(3, cfg.accel_bias_walk ** 2)]
@@ -278,7 +306,7 @@ class EkfRio:
         self.p = self.p + self.v * dt + 0.5 * acc_w * dt * dt
         self.v = self.v + acc_w * dt
         self.R = R @ so3_exp(w * dt)
-        F = np.eye(15)
+        F = np.eye(self.n)
         F[0:3, 3:6] = np.eye(3) * dt
         F[3:6, 6:9] = -R @ skew(a) * dt
         F[3:6, 12:15] = -R * dt
@@ -295,7 +323,8 @@ class EkfRio:
             self.Pt = 0.5 * (Pt + Pt.T)
             self.Ct = F @ self.Ct
 
-    def _correct(self, y: F64, H: F64, Rm: F64, scale_actual: bool = False) -> bool:
+    def _correct(self, y: F64, H: F64, Rm: F64, scale_actual: bool = False,
+                 only: npt.NDArray[np.intp] | None = None) -> bool:
         S = H @ self.P @ H.T + Rm
         try:
             Sinv_y = np.linalg.solve(S, y)
@@ -305,8 +334,12 @@ class EkfRio:
         if d2 > chi2.ppf(self.cfg.gate_probability, df=len(y)):
             return False
         K = np.linalg.solve(S, H @ self.P).T  # P H^T S^-1 (S symmetric)
+        if only is not None:  # a Schmidt (consider) update: the other states keep their means; Joseph stays exact
+            keep = np.zeros(self.n, bool)
+            keep[only] = True
+            K[~keep] = 0.0
         dx = K @ y
-        IKH = np.eye(15) - K @ H
+        IKH = np.eye(self.n) - K @ H
         self.P = IKH @ self.P @ IKH.T + K @ Rm @ K.T
         self.P = 0.5 * (self.P + self.P.T)
         # the clone is the pose written at the last scan, never corrected afterwards: its error stays the
@@ -327,6 +360,8 @@ class EkfRio:
         self.R = self.R @ so3_exp(dx[6:9])
         self.bg += dx[9:12]
         self.ba += dx[12:15]
+        if self.n > 15:
+            self.mount = Rotation.from_matrix(so3_exp(self.mount) @ so3_exp(dx[15:18])).as_rotvec()
         return True
 
     def update_velocity(self, v_radar: F64, cov: F64, rows: npt.NDArray[np.intp], gyro: F64, R_ir: F64, t_ir: F64
@@ -334,16 +369,27 @@ class EkfRio:
         """Radar ego-velocity update on the measurement rows ``rows`` (indices into x, y, z)."""
         w = gyro - self.bg
         v_body = self.R.T @ self.v
+        if self.n > 15:
+            R_ir = R_ir @ so3_exp(self.mount)
         h = R_ir.T @ (v_body + np.cross(w, t_ir))
-        H = np.zeros((3, 15))
+        H = np.zeros((3, self.n))
         H[:, 3:6] = R_ir.T @ self.R.T
         H[:, 6:9] = R_ir.T @ skew(v_body)
         H[:, 9:12] = R_ir.T @ skew(t_ir)
+        if self.n > 15:
+            H[:, 15:18] = skew(h)
         r = np.asarray(rows, dtype=int)
         return self._correct((v_radar - h)[r], H[r], cov[np.ix_(r, r)], scale_actual=True)
 
+    def update_level(self, sigma: float) -> bool:
+        """Zero vertical velocity (world z), std ``sigma``."""
+        H = np.zeros((1, self.n))
+        H[0, 5] = 1.0
+        only = np.r_[2, 5, 15:self.n] if self.cfg.level_schmidt else None
+        return self._correct(np.array([-self.v[2]]), H, np.array([[sigma * sigma]]), only=only)
+
     def update_zero_rate(self, gyro_mean: F64, sigma: float) -> bool:
-        H = np.zeros((3, 15))
+        H = np.zeros((3, self.n))
         H[:, 9:12] = np.eye(3)
         return self._correct(gyro_mean - self.bg, H, np.eye(3) * sigma ** 2)
 
@@ -374,7 +420,7 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
     S = len(scan_t)
     out = EkfResult(np.tile(np.eye(4), (S, 1, 1)), np.zeros((S, 3)), np.zeros((S, 3)), np.zeros((S, 3)),
                     np.zeros(S, bool), np.zeros(S, bool), np.zeros(S, bool), np.zeros((S, 15)), np.zeros(S, bool),
-                    np.zeros((S, 12, 12)))
+                    np.zeros((S, 12, 12)), mount_error=np.zeros((S, 3)), mount_sigma=np.zeros((S, 3)))
     R_ir, t_ir = imu_from_radar[:3, :3], imu_from_radar[:3, 3]
     if S == 0 or len(imu_t) < 2:
         return out
@@ -461,8 +507,9 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
                 R_re = np.array([[c_, -s_, 0.0], [s_, c_, 0.0], [0.0, 0.0, 1.0]])
                 ekf = EkfRio(cfg, R_re, R_re @ (R_ir @ vel[s]))
                 ekf.p = p_last
-                ekf.Pc, ekf.C = ekf.P.copy(), np.zeros((15, 15))  # the clone's error: independent of the new state
-                ekf.Pct, ekf.Ct = ekf.Pt.copy(), np.zeros((15, 15))
+                n = ekf.n
+                ekf.Pc, ekf.C = ekf.P.copy(), np.zeros((n, n))  # the clone's error: independent of the new state
+                ekf.Pct, ekf.Ct = ekf.Pt.copy(), np.zeros((n, n))
                 n_reinit += 1
                 out.recovered[s] = True
             ok = ekf.update_velocity(vel[s], c, rows, w_k, R_ir, t_ir)
@@ -481,6 +528,8 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
             else:
                 n_rej += 1
                 out.rejected[s] = True
+            if cfg.level_velocity_sigma > 0:
+                ekf.update_level(cfg.level_velocity_sigma)
             if cfg.zero_rate_update and run_len[s] >= cfg.zero_rate_min_scans and g_dt > 0:
                 n_zaru += int(ekf.update_zero_rate(g_sum / g_dt, cfg.zero_rate_sigma))
         T = np.eye(4)
@@ -489,7 +538,10 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
         out.velocity[s] = ekf.v
         out.gyro_bias[s] = ekf.bg
         out.accel_bias[s] = ekf.ba
-        out.sigma[s] = np.sqrt(np.diag(ekf.P))
+        sd = np.sqrt(np.diag(ekf.P))
+        out.sigma[s] = sd[:15]
+        if ekf.n > 15:
+            out.mount_error[s], out.mount_sigma[s] = ekf.mount, sd[15:18]
         if s > s0:
             out.pose_pair_cov[s] = ekf.pose_pair_cov()
         ekf.clone()

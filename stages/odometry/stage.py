@@ -88,6 +88,15 @@ class OdometryParams(StageParams):
     recover_sigma_v: float = Field(0.5, gt=0, description="velocity std after a recovery, m/s")
     recover_sigma_attitude_deg: float = Field(5.0, gt=0, description="attitude std after a recovery, degrees")
     recover_sigma_accel_bias: float = Field(0.3, gt=0, description="accelerometer bias std after a recovery, m/s^2")
+    mount_sigma0_deg: float = Field(
+        0.0, ge=0, le=20, description="estimate the radar mount's rotation error with this prior std per axis, degrees "
+                                      "(a pitched radar reads forward speed as climb); 0: trust the stated extrinsic")
+    level_velocity_sigma: float = Field(
+        0.0, ge=0, description="a zero vertical-velocity pseudo-measurement at every scan with this std, m/s (the "
+                               "platform moves on level floors on average); 0: none")
+    level_schmidt: bool = Field(
+        True, description="the level pseudo-measurement moves only the height, the vertical velocity and the mount "
+                          "(a Schmidt update: attitude and biases keep their means); false: a full update")
     reject_warn_share: float = Field(0.1, ge=0, le=1, description="warn when more than this share of velocity "
                                                                   "updates is rejected by the gate")
     cov_accel_noise_density: float | None = Field(
@@ -216,7 +225,9 @@ class OdometryStage(Stage):
             recover_after=p.recover_after, recover_sigma_v=p.recover_sigma_v,
             recover_sigma_attitude=np.radians(p.recover_sigma_attitude_deg),
             recover_sigma_accel_bias=p.recover_sigma_accel_bias, actual_accel_noise_density=p.cov_accel_noise_density,
-            actual_gyro_noise_density=p.cov_gyro_noise_density, actual_velocity_cov_scale=p.cov_velocity_scale)
+            actual_gyro_noise_density=p.cov_gyro_noise_density, actual_velocity_cov_scale=p.cov_velocity_scale,
+            mount_sigma0=np.radians(p.mount_sigma0_deg), level_velocity_sigma=p.level_velocity_sigma,
+            level_schmidt=p.level_schmidt)
         imu_from_radar = np.linalg.inv(base_from_imu) @ base_from_radar
         res = run_ekf(imu_t, acc, gyro, scan_t, vel, cov, dims, valid, imu_from_radar, cfg)
         if not res.initialized.any():
@@ -231,6 +242,11 @@ class OdometryStage(Stage):
         ctx.stats["ekf"] = res.stats
         ctx.stats["gyro_bias_final"] = [round(float(b), 6) for b in res.gyro_bias[-1]]
         ctx.stats["accel_bias_final"] = [round(float(b), 5) for b in res.accel_bias[-1]]
+        if p.mount_sigma0_deg > 0:
+            ctx.stats["mount_error_deg"] = [round(float(np.degrees(v)), 3) for v in res.mount_error[-1]]
+            ctx.stats["mount_error_sigma_deg"] = [round(float(np.degrees(v)), 3) for v in res.mount_sigma[-1]]
+            ctx.console.print(f"[dim]odometry: radar mount rotation error (radar frame) "
+                              f"{ctx.stats['mount_error_deg']} deg, std {ctx.stats['mount_error_sigma_deg']} deg[/]")
         T_wb = res.T_world_imu @ np.linalg.inv(base_from_imu)
         return scans, scan_t, T_wb, res.initialized, increment_covariance(res.T_world_imu, res.pose_pair_cov,
                                                                           base_from_imu)
