@@ -25,7 +25,11 @@ def test_radar_only_workflow_builds_completes_and_scores_the_map_along_the_slam_
             "radar_only", *SLAM)
     assert r.returncode == 0, r.stderr
     seq = runs / SEQ
-    assert "slam      done" not in r.stderr  # the slam stage was cached: same parameters as the default workflow
+    assert "ingest    done" not in r.stderr and "filter    done" not in r.stderr  # cached: the default workflow's
+    # the odometry estimates the radar's mount under the level prior (the map's height; stages/odometry/README.md)
+    odo = json.loads((seq / "odometry" / "manifest.json").read_text())
+    assert odo["params"]["level_velocity_sigma"] > 0 and odo["params"]["mount_sigma0_deg"] > 0
+    assert len(odo["stats"]["mount_error_deg"]) == 3
     voxel = json.loads((seq / "voxel" / "manifest.json").read_text())
     assert voxel["params"]["trajectory"] == "slam" and voxel["params"]["attitude"] == "odometry"
     assert voxel["stats"]["attitude"] == "odometry" and voxel["stats"]["trajectory_coverage"] >= 0.9
