@@ -128,3 +128,8 @@ def test_odometry_from_a_bag_topic(circle_log, tmp_path: Path) -> None:
     np.testing.assert_allclose(np.cos(odo["yaw"].to_numpy() - yaw), 1.0, atol=1e-5)
     with pytest.raises(UserError, match="no odometry topic"):
         run_stages(bag, tmp_path / "runs3", ["odometry"], {"odometry": {"source": "bag"}})
+    # the EKF's height settings mean nothing for a topic: said, not silently dropped
+    over["odometry"]["level_velocity_sigma"] = 0.2
+    out = run_stages(bag, tmp_path / "runs4", ["odometry"], over)
+    warnings = json.loads((out / "odometry" / "manifest.json").read_text())["stats"]["warnings"]
+    assert any("odometry.level_velocity_sigma=0.2" in w and "source=bag" in w for w in warnings)

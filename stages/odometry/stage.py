@@ -135,6 +135,10 @@ class OdometryStage(Stage):
         base_from_imu = np.asarray(calib["base_from_imu"], dtype=np.float64)
         base_from_radar = np.asarray(calib["base_from_radar"], dtype=np.float64)
         if p.source == "bag":
+            ekf_only = [f"{k}={getattr(p, k):g}" for k in ("mount_sigma0_deg", "level_velocity_sigma") if getattr(p, k)]
+            if ekf_only:
+                ctx.warn(f"odometry.{', odometry.'.join(ekf_only)}: EKF settings, unused with odometry.source=bag "
+                         f"(the log's odometry topic is taken as it is)")
             scans, scan_t, T_wb, valid = self._from_bag(ctx)
             u = se2_increments(np.stack([T_wb[:, 0, 3], T_wb[:, 1, 3], yaw_of(T_wb[:, :3, :3])], axis=1))
             inc_cov = bag_increment_covariance(u, p.bag_std_xy, p.bag_rel_trans, p.bag_std_yaw, p.bag_rot_per_trans)
