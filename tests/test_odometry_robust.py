@@ -130,6 +130,7 @@ def test_mount_pitch_estimated_with_the_level_prior_and_the_height_stops_driftin
     res, err, _ = _pitched_mount(np.radians(3.0), 0.2)
     assert abs(res.mount_error[-1, 0] - err[0]) < 3 * res.mount_sigma[-1, 0]
     assert res.mount_sigma[-1, 0] < 0.3 * np.radians(3.0)
+    assert res.stats["level_rejected"] == 0  # a level platform: the gate never refuses the prior
     assert abs(res.T_world_imu[-1, 2, 3]) < 0.2 * abs(z_plain)
     # the mount state alone cannot tell a pitched radar from a real climb at constant speed: unobservable
     alone, _, _ = _pitched_mount(np.radians(3.0), 0.0)

@@ -464,7 +464,7 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
         R0 = gravity_aligned(f0)
         ekf = EkfRio(cfg, R0, R0 @ v_imu)
     chi_rows = {3: np.arange(3), 2: np.arange(2), 0: np.arange(3)}
-    n_upd = n_rej = n_zaru = n_recover = n_reinit = 0
+    n_upd = n_rej = n_zaru = n_recover = n_reinit = n_level_rej = 0
     in_row = 0
     recover_t: list[int] = []
     # standstill runs: a zero-rate update needs this many consecutive zero-velocity scans (a slow creep can pass
@@ -528,8 +528,8 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
             else:
                 n_rej += 1
                 out.rejected[s] = True
-            if cfg.level_velocity_sigma > 0:
-                ekf.update_level(cfg.level_velocity_sigma)
+            if cfg.level_velocity_sigma > 0:  # the gate rejects it where the platform really climbs: counted
+                n_level_rej += int(not ekf.update_level(cfg.level_velocity_sigma))
             if cfg.zero_rate_update and run_len[s] >= cfg.zero_rate_min_scans and g_dt > 0:
                 n_zaru += int(ekf.update_zero_rate(g_sum / g_dt, cfg.zero_rate_sigma))
         T = np.eye(4)
@@ -549,6 +549,7 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
     out.T_world_imu[:s0] = out.T_world_imu[s0]
     out.stats = {"start_scan": s0, "velocity_updates": n_upd, "velocity_rejected": n_rej, "zero_rate_updates": n_zaru,
                  "recoveries": n_recover, "reinitialisations": n_reinit, "recovery_t_ns": recover_t,
+                 "level_rejected": n_level_rej,
                  "standstill": still.as_dict() if still is not None else None}
     return out
 

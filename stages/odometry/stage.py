@@ -274,6 +274,11 @@ class OdometryStage(Stage):
                      f"in a row (covariance inflated; at {when}{more} s)"
                      + (f", re-initialised {st['reinitialisations']} time(s) from a non-finite state"
                         if st["reinitialisations"] else ""))
+        n_level = st.get("level_rejected", 0)
+        if p.level_velocity_sigma > 0 and total and n_level / total > p.reject_warn_share:
+            ctx.warn(f"EKF: the level prior (odometry.level_velocity_sigma={p.level_velocity_sigma:g}) was rejected "
+                     f"by the gate at {n_level} of {total} scans: the platform climbs; set "
+                     f"odometry.level_velocity_sigma=0 for a log that is not level on average")
         still = st.get("standstill")
         if still:
             ctx.console.print(f"[dim]odometry: started from a {still['seconds']} s standstill (gyro noise "
