@@ -44,17 +44,18 @@ def main(argv: list[str] | None = None) -> None:
     print("| sequence | built along | " + " | ".join(f"{lab}: completed CD-l2 / along GT" for lab in a.labels)
           + " | " + " | ".join(f"{lab}: yaw RMSE, no alignment (deg)" for lab in a.labels) + " |")
     print("|---|---|" + "---|" * 4)
-    bars: list[tuple[str, list[float]]] = []
+    bars: list[tuple[str, list[list[float]]]] = []  # per source: the ratios per sweep (before, after), per sequence
     for src in a.sources:
-        vals = []
+        per_run: list[list[float]] = [[], []]
         for s in seqs:
             rows = [r.get((s, src), {}) for r in runs]
             rat = [r.get("ratio_cd_l2") or float("nan") for r in rows]
             yaw = [r.get("traj.ate_yaw_rmse_anchored_deg", float("nan")) for r in rows]
             print(f"| {s} | {src} | " + " | ".join(f"{v:.2f}" for v in rat) + " | "
                   + " | ".join(f"{v:.2f}" for v in yaw) + " |")
-            vals += rat
-        bars.append((src, vals))
+            for j, v in enumerate(rat):
+                per_run[j].append(v)
+        bars.append((src, per_run))
     if a.out is None:
         return
     import matplotlib
@@ -67,10 +68,9 @@ def main(argv: list[str] | None = None) -> None:
     width = 0.8 / (2 * len(a.sources))
     x = np.arange(n)
     k = 0
-    for src, vals in bars:
+    for src, per_run in bars:
         for j, lab in enumerate(a.labels):
-            v = np.asarray(vals[j::2])
-            ax.bar(x + (k - len(a.sources) + 0.5) * width, v, width, label=f"along {src}, {lab}",
+            ax.bar(x + (k - len(a.sources) + 0.5) * width, per_run[j], width, label=f"along {src}, {lab}",
                    alpha=0.55 if j == 0 else 1.0, hatch="//" if j == 0 else None)
             k += 1
     ax.axhline(TARGET, color="k", ls="--", lw=1, label=f"target {TARGET}x")

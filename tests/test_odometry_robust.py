@@ -103,9 +103,9 @@ def test_recovery_follows_the_radar_instead_of_rejecting_it_forever() -> None:
     assert np.abs(v_off[110:, 0] - target[110:, 0]).mean() > base + 0.2
 
 
-def _pitched_mount(mount_sigma0: float, level_sigma: float) -> tuple[EkfResult, np.ndarray, np.ndarray]:
+def _pitched_mount(mount_sigma0: float, level_sigma: float) -> tuple[EkfResult, np.ndarray]:
     """A level 30 s circle at 1 m/s whose radar is truly pitched by 1.5 deg against its stated mount: the filter
-    is given the stated extrinsic; returns the result, the true mount error and the scans' true heights (0)."""
+    is given the stated extrinsic; returns the result and the true mount error (its height stays 0)."""
     run = circle_run(duration=30.0, seed=0, gyro_noise=1.5e-4, accel_noise=6e-4, clutter=0, ghosts=0)
     sc = run.scene
     scan_t = np.array([t for t, _ in sc.radar], dtype=np.int64)
@@ -118,25 +118,25 @@ def _pitched_mount(mount_sigma0: float, level_sigma: float) -> tuple[EkfResult, 
     res = run_ekf(sc.imu_t, sc.imu[:, :3], sc.imu[:, 3:], scan_t, vel, cov, np.full(len(scan_t), 3),
                   np.ones(len(scan_t), bool), imu_from_radar,
                   EkfConfig(mount_sigma0=mount_sigma0, level_velocity_sigma=level_sigma))
-    return res, err, np.zeros(len(scan_t))
+    return res, err
 
 
 def test_mount_pitch_estimated_with_the_level_prior_and_the_height_stops_drifting() -> None:
     """A pitched radar makes EKF-RIO climb (the stated mount reads forward speed as vertical); with the mount
     state and the level prior the pitch is estimated within 3 sigma, its sigma shrinks, and z stays put."""
-    plain, err, _ = _pitched_mount(0.0, 0.0)
+    plain, err = _pitched_mount(0.0, 0.0)
     z_plain = plain.T_world_imu[-1, 2, 3]
     assert abs(z_plain) > 0.5  # ~30 m * sin(1.5 deg) = 0.79 m of made-up height
-    res, err, _ = _pitched_mount(np.radians(3.0), 0.2)
+    res, err = _pitched_mount(np.radians(3.0), 0.2)
     assert abs(res.mount_error[-1, 0] - err[0]) < 3 * res.mount_sigma[-1, 0]
     assert res.mount_sigma[-1, 0] < 0.3 * np.radians(3.0)
     assert res.stats["level_rejected"] == 0  # a level platform: the gate never refuses the prior
     assert abs(res.T_world_imu[-1, 2, 3]) < 0.2 * abs(z_plain)
     # the mount state alone cannot tell a pitched radar from a real climb at constant speed: unobservable
-    alone, _, _ = _pitched_mount(np.radians(3.0), 0.0)
+    alone, _ = _pitched_mount(np.radians(3.0), 0.0)
     assert alone.mount_sigma[-1, 0] > 0.8 * np.radians(3.0)
     # without the state, the level prior alone only pulls the height part of the way (the radar keeps pushing)
-    level, _, _ = _pitched_mount(0.0, 0.2)
+    level, _ = _pitched_mount(0.0, 0.2)
     assert abs(level.T_world_imu[-1, 2, 3]) > abs(res.T_world_imu[-1, 2, 3])
 
 
