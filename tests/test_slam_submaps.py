@@ -11,7 +11,7 @@ from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, sample_beams, to_world
 from stages.slam.methods import OdometryMotion, SlamConfig, run_method
 from stages.slam.rbpf import HilbertParticleMaps, MapModel, compose
-from stages.slam.submaps import SubmapModel, SubmapParticleMaps
+from stages.slam.submaps import ClosedSubmap, SubmapModel, SubmapParticleMaps
 from stages.slam.synthetic import make_run
 
 MODEL = MapModel(1.0, 16.0, 0.36, form="information")
@@ -183,3 +183,51 @@ def test_hybrid_maps_weigh_half_against_each_and_the_stage_builds_them() -> None
         s = _scan(rng)
         expect = 0.5 * glob.weigh_and_update(poses, s) + 0.5 * local.weigh_and_update(poses, s)
         np.testing.assert_allclose(hyb.weigh_and_update(poses, s), expect, rtol=1e-10, atol=1e-12)
+
+
+def test_kept_submaps_weigh_a_revisit_against_the_first_visit() -> None:
+    """With ``keep_closed``, a robot that drives away and comes back is weighed against the submap of its first
+    visit (the oldest whose window holds it), by that submap's posterior means; resampling only moves row
+    indices, and a closed submap's weight equals the mean-only weight of the open maps it was closed from."""
+    rng = np.random.default_rng(3)
+    g = SubmapModel(half_width=7.0, n_basis=16, reach=5.0, margin=0.5, keep_closed=True)
+    maps = SubmapParticleMaps.create(g, 4, MODEL)
+    pose: np.ndarray = np.zeros(3)
+    path = [np.array([0.2, 0.0, 0.0])] * 60 + [np.array([0.0, 0.0, np.pi / 10])] * 10 + [np.array([0.2, 0.0, 0.0])] * 60
+    for i, u in enumerate(path):
+        pose = compose(pose, u)
+        poses = pose + rng.normal(0.0, [0.02, 0.02, 0.005], (4, 3))
+        maps.weigh_and_update(poses, _scan(rng))
+        if i == 60:
+            maps.select(np.array([0, 0, 2, 3]))
+    assert maps.closed and maps.revisits > 0
+    # at the end the robot is back at the start: the first submap (order 0) is what it is weighed against
+    end = maps.weighing(pose + np.zeros((4, 3)))
+    assert isinstance(end, ClosedSubmap) and end.order == 0
+    assert len(end.theta) <= 3 and end.rows[0] == end.rows[1]  # particles 0 and 1 share one parent's row
+
+
+def test_a_closed_submap_weighs_as_its_open_maps_mean_only() -> None:
+    """The means a closed submap keeps are the open maps' exact posterior means (solved anew from the
+    information form), and its weight equals the mean-only weight of those maps."""
+    from dataclasses import replace
+
+    from stages.slam.rbpf import hilbert_log_likelihood
+    from stages.slam.submaps import posterior_means
+
+    rng = np.random.default_rng(4)
+    basis = hm.make_basis([7.0, 7.0], [0.0, 0.0], 16)
+    maps = HilbertParticleMaps(basis, 3, MODEL)
+    poses: np.ndarray = rng.normal(0.0, 0.05, (3, 3))
+    for _ in range(4):
+        maps.weigh_and_update(poses, _scan(rng))
+    theta = posterior_means(maps)
+    for k in range(3):
+        np.testing.assert_allclose(theta[k], maps.map_of(k)[0], rtol=1e-10, atol=1e-12)
+    closed = ClosedSubmap(basis, theta, np.arange(3), 4, 0)
+    s = _scan(rng)
+    want = hilbert_log_likelihood(basis, theta, np.empty(0), poses, s, replace(MODEL.weighting, use_variance=False))
+    np.testing.assert_allclose(closed.log_likelihood(poses, s, MODEL.weighting), want)
+    closed.select(np.array([2, 2, 0]))
+    np.testing.assert_allclose(closed.theta[closed.rows], theta[[2, 2, 0]])
+    assert len(closed.theta) == 2

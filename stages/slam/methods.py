@@ -179,6 +179,8 @@ class MethodResult:
     estimates: dict[str, F64] = field(default_factory=dict)
     #: submaps the filter opened (``cfg.submaps``; 0 with the global map)
     submaps_opened: int = 0
+    #: scans weighed against a closed submap (``submap_keep_closed``: loop closures)
+    submap_revisits: int = 0
 
 
 def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]:
@@ -227,7 +229,8 @@ def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_pa
     if cfg.submaps is None:
         return factory(basis, n_particles, cfg.map_model(method, form))
     model = replace(cfg.map_model(method, form), lengthscale=cfg.submap_lengthscale_m)
-    local = (SubmapParticleMaps(cfg.submaps, submap_factory(n_particles, model, cfg.workers), cfg.basis_kind)
+    local = (SubmapParticleMaps(cfg.submaps, submap_factory(n_particles, model, cfg.workers), cfg.basis_kind,
+                                weighting=model.weighting)
              if cfg.workers > 0 else SubmapParticleMaps.create(cfg.submaps, n_particles, model, cfg.basis_kind))
     if cfg.submap_share >= 1.0:
         return local
@@ -308,9 +311,14 @@ def run_method(
         np.asarray(h.particles), best_map.get("theta"), best_map.get("cov"),
         form if method in HILBERT_METHODS else "", device,
         np.asarray(h.yaw_bias) if proposal.bias is not None else None, estimates,
-        maps.opened if isinstance(maps, SubmapParticleMaps) else
-        maps.local.opened if isinstance(maps, HybridParticleMaps) else 0,
+        *_submap_counts(maps),
     )
+
+
+def _submap_counts(maps: Any) -> tuple[int, int]:
+    """Submaps opened and scans weighed against a closed one (0, 0 with the global map)."""
+    local = maps.local if isinstance(maps, HybridParticleMaps) else maps
+    return (local.opened, local.revisits) if isinstance(local, SubmapParticleMaps) else (0, 0)
 
 
 def _run_torch(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, form: Literal["information", "covariance"],

@@ -82,6 +82,9 @@ class SlamParams(StageParams):
     submap_n_basis: int = Field(256, ge=1, description="submaps: basis functions per submap (a perfect square for "
                                 "the tensor basis)")
     submap_lengthscale: float = Field(10.0, gt=0, description="submaps: SE length scale in map units (10 dm = 1 m)")
+    submap_keep_closed: bool = Field(False, description="submaps: keep closed submaps (each particle's mean map) "
+                                     "and weigh a scan against the oldest submap whose window holds the robot, so a "
+                                     "place seen again is weighed against its first visit (loop closure)")
     map_update: Literal["kalman", "laplace"] = Field("kalman", description="map update: Kalman (eq. 15-19) or "
                                                      "recursive Laplace (Appendix)")
     laplace_iterations: int = Field(20, ge=1, description="Newton iterations of the Laplace update at most")
@@ -223,7 +226,8 @@ class SlamParams(StageParams):
 
     def submap_model(self) -> SubmapModel:
         """The submaps' geometry (their samples reach max_range plus the endpoint tolerance)."""
-        return SubmapModel(self.submap_half_width, self.submap_n_basis, self.max_range + self.endpoint_tolerance)
+        return SubmapModel(self.submap_half_width, self.submap_n_basis, self.max_range + self.endpoint_tolerance,
+                           keep_closed=self.submap_keep_closed)
 
     def config(self) -> SlamConfig:
         return SlamConfig(
@@ -306,6 +310,7 @@ class SlamStage(Stage):
                        if res.yaw_bias is not None and len(res.yaw_bias) else {}),
                     **({"device": res.device} if m in HILBERT_METHODS else {}),
                     **({"submaps_opened": res.submaps_opened} if res.submaps_opened else {}),
+                    **({"submap_revisits": res.submap_revisits} if res.submap_revisits else {}),
                 }
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
                                   f"s/scan), {res.resampled} resamplings[/]")

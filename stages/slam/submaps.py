@@ -12,14 +12,18 @@ is closed when the robot leaves its *window* (the square in which every sample o
 half a window away from every open one. So the map resolution depends on ``half_width`` and M only,
 and the cost per scan is that of at most ``max_open`` maps of M functions, whatever the world's size.
 
-What a submap cannot do is close a loop: a place seen again after its submap was closed is mapped anew.
-Pure numpy, no I/O.
+A closed submap is forgotten unless ``keep_closed`` is set: then it keeps every particle's posterior mean
+(:class:`ClosedSubmap`; rows shared by the particles that descend from one parent, so resampling copies
+nothing), and a scan is weighed against the *oldest* submap, open or closed, whose window holds the robot:
+a place seen again is weighed against the map of the first visit, which is how a submap filter closes a
+loop. Closed submaps weigh by their mean only (H-SLAM's mean-only weight, eq. 26 without eq. 28's variance):
+a full posterior per particle would cost M^2 numbers per closed submap. Pure numpy, no I/O.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -27,7 +31,8 @@ import numpy.typing as npt
 
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.rbpf import HilbertParticleMaps, MapModel, weigh_and_update
+from stages.slam.particle_linalg import StackedInformation
+from stages.slam.rbpf import HilbertParticleMaps, HilbertWeighting, MapModel, hilbert_log_likelihood, weigh_and_update
 
 F64 = npt.NDArray[np.floating[Any]]
 
@@ -46,6 +51,9 @@ class SubmapModel:
     margin: float = 0.5
     #: open submaps at most (the oldest is closed first)
     max_open: int = 2
+    #: keep closed submaps (their posterior means) and weigh a scan against the oldest one whose window holds
+    #: the robot: loop closure; False forgets them (stop 34's submaps)
+    keep_closed: bool = False
 
     @property
     def window(self) -> float:
@@ -78,6 +86,45 @@ class Submap:
     basis: hm.HilbertBasis
     maps: SubmapMaps
     scans: int = 0
+    #: its place in the order of opening (0 = the first submap)
+    order: int = 0
+
+
+@dataclass
+class ClosedSubmap:
+    """A closed submap's particle maps as posterior means: particle ``k``'s map is ``theta[rows[k]]``."""
+
+    basis: hm.HilbertBasis
+    theta: F64
+    rows: npt.NDArray[np.int64]
+    scans: int
+    order: int
+
+    def select(self, indices: npt.NDArray[np.int64]) -> None:
+        """Survivors after resampling: only the row indices move; rows no particle holds any more are dropped."""
+        kept, rows = np.unique(self.rows[indices], return_inverse=True)
+        if len(kept) < len(self.theta):
+            self.theta = self.theta[kept]
+        self.rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+
+    def log_likelihood(self, poses: F64, samples: BeamSamples, weighting: HilbertWeighting) -> F64:
+        """eq. 22-27 and 29 against every particle's mean map (mean-only: ``use_variance`` is ignored)."""
+        mean_only = replace(weighting, use_variance=False)
+        return hilbert_log_likelihood(self.basis, self.theta[self.rows], np.empty(0), poses, samples, mean_only)
+
+
+def posterior_means(maps: Any) -> F64:
+    """Every particle's current posterior mean ``(Np, M)`` (float64) of in-process or worker maps, either form.
+
+    The information form's ``theta`` is the mean its last weighting used (before that scan's update), so the
+    means are solved anew from ``(Y, eta)``; the covariance form's ``theta`` is current."""
+    stack = getattr(maps, "stack", None)
+    if stack is None and getattr(maps, "form", None) == "information" and hasattr(maps, "_stacks"):
+        info, eta = maps._stacks[1], maps._stacks[2]  # worker maps: the shared (Y, eta)
+        stack = StackedInformation(np.ones(info.shape[-1]), len(info), info.dtype, arrays=(info, eta))
+    if stack is not None:
+        return np.stack([stack.posterior(k)[0] for k in range(stack.n)])
+    return np.array(maps.theta, dtype=np.float64)
 
 
 #: the particle maps of a new submap on ``basis``, at the prior; ``spare`` are a closed submap's maps to reuse
@@ -103,18 +150,28 @@ class SubmapParticleMaps:
     opened: int = 0
     #: a closed submap's maps, kept for the next one (worker processes are not started anew)
     spare: list[SubmapMaps] = field(default_factory=list)
+    #: closed submaps kept for loop closure (``geometry.keep_closed``)
+    closed: list[ClosedSubmap] = field(default_factory=list)
+    #: how closed submaps weigh a scan (the open ones' weighting, mean-only)
+    weighting: HilbertWeighting = field(default_factory=HilbertWeighting)
+    #: scans weighed against a closed submap (a diagnostic)
+    revisits: int = 0
 
     @classmethod
     def create(cls, geometry: SubmapModel, n_particles: int, model: MapModel,
                basis_kind: hm.BasisKind = "tensor") -> SubmapParticleMaps:
         """Submaps whose particle maps live in this process."""
-        return cls(geometry, in_process(n_particles, model), basis_kind)
+        return cls(geometry, in_process(n_particles, model), basis_kind, weighting=model.weighting)
 
     def _distance(self, s: Submap, centre: F64) -> float:
         return float(np.max(np.abs(centre - s.basis.centre)))
 
     def _close(self, s: Submap) -> None:
-        """Keep a closed submap's maps for reuse when they can be reset (worker maps), else let them go."""
+        """Keep the closed submap's means (``keep_closed``), and its maps for reuse when they can be reset
+        (worker maps), else let them go."""
+        if self.geometry.keep_closed and s.scans > 0:
+            theta = posterior_means(s.maps)
+            self.closed.append(ClosedSubmap(s.basis, theta, np.arange(len(theta)), s.scans, s.order))
         if hasattr(s.maps, "reset") and not self.spare:
             self.spare.append(s.maps)
         elif hasattr(s.maps, "close"):
@@ -134,21 +191,32 @@ class SubmapParticleMaps:
                 self._close(self.open.pop(0))
             basis = hm.make_basis([g.half_width, g.half_width], c, g.n_basis, self.basis_kind)
             spare = self.spare.pop() if self.spare else None
-            self.open.append(Submap(basis, self.factory(basis, spare)))
+            self.open.append(Submap(basis, self.factory(basis, spare), order=self.opened))
             self.opened += 1
 
-    def weighing(self, poses: F64) -> Submap | None:
-        """The submaps arranged for a scan at ``poses``, and the one it is weighed against: the oldest open
-        submap with data (None before the first scan)."""
+    def weighing(self, poses: F64) -> Submap | ClosedSubmap | None:
+        """The submaps arranged for a scan at ``poses``, and the one it is weighed against: the oldest submap
+        with data, open or (``keep_closed``) closed with the robot inside its window (None before the first
+        scan)."""
         self._arrange(poses)
-        return next((s for s in self.open if s.scans > 0), None)
+        target: Submap | ClosedSubmap | None = next((s for s in self.open if s.scans > 0), None)
+        if self.closed:
+            c = np.mean(np.asarray(poses, dtype=np.float64)[:, :2], axis=0)
+            inside = [k for k in self.closed if float(np.max(np.abs(c - k.basis.centre))) <= self.geometry.window]
+            old = min(inside, key=lambda k: k.order, default=None)
+            if old is not None and (target is None or old.order < target.order):
+                target = old
+        return target
 
     def weigh_and_update(self, poses: F64, samples: BeamSamples) -> F64:
-        """eq. 22-30 against the oldest open submap with data, then eq. 15 into every open submap."""
+        """eq. 22-30 against the oldest submap with data (:meth:`weighing`), then eq. 15 into every open one."""
         if samples.n == 0:
             return np.zeros(len(poses))
         target = self.weighing(poses)
         ll: F64 = np.zeros(len(poses))
+        if isinstance(target, ClosedSubmap):
+            ll = target.log_likelihood(poses, samples, self.weighting)
+            self.revisits += 1
         for s in self.open:
             if s is target:
                 ll = s.maps.weigh_and_update(poses, samples)
@@ -167,6 +235,8 @@ class SubmapParticleMaps:
     def select(self, indices: npt.NDArray[np.int64]) -> None:
         for s in self.open:
             s.maps.select(indices)
+        for k in self.closed:
+            k.select(indices)
 
     def close(self) -> None:
         """Release every submap's maps (worker processes, shared memory) that can be closed."""
@@ -174,7 +244,7 @@ class SubmapParticleMaps:
             close = getattr(m, "close", None)
             if close is not None:
                 close()
-        self.open, self.spare = [], []
+        self.open, self.spare, self.closed = [], [], []
 
 
 @dataclass
