@@ -194,3 +194,50 @@ def test_checkpoint_round_trip_and_kind_errors(tmp_path) -> None:
     assert checkpoint_kind(other) == "uppointr"
     with pytest.raises(UserError, match="uppointr checkpoint, not a voxel model"):
         load_voxel_checkpoint(other)
+
+
+def test_gated_union_keeps_the_radar_voxels_the_model_believes() -> None:
+    """``completed_keys`` with a gate adds only the radar voxels whose own predicted probability reaches it
+    (brute force over the keys); gate 0 is the plain union; a radar voxel the prediction does not hold counts as
+    probability 0; the gate survives a checkpoint round trip (older checkpoints read as gate 0)."""
+    from stages.complete.voxel_net import TilePrediction, completed_keys, probabilities_at
+
+    rng = np.random.default_rng(2)
+    keys = np.unique(rng.integers(-20, 20, (400, 3)), axis=0)
+    probs = rng.random(len(keys)).astype(np.float32)
+    pred = TilePrediction(keys, probs)
+    radar = np.concatenate([keys[rng.choice(len(keys), 60, replace=False)], [[100, 100, 100]]])
+    p = probabilities_at(pred, radar)
+    want = [next((float(q) for k, q in zip(keys, probs, strict=True) if tuple(k) == tuple(r)), 0.0) for r in radar]
+    np.testing.assert_array_equal(p, np.asarray(want, np.float32))
+    for gate in (0.0, 0.2, 0.45):
+        got = {tuple(k) for k in completed_keys(pred, 0.5, radar, gate)}
+        expect = {tuple(k) for k, q in zip(keys, probs, strict=True) if q >= 0.5}
+        expect |= {tuple(r) for r, q in zip(radar, want, strict=True) if gate == 0 or q >= gate}
+        assert got == expect
+    assert (100, 100, 100) in {tuple(k) for k in completed_keys(pred, 0.5, radar, 0.0)}
+
+
+def test_gate_rule_takes_the_lowest_gate_that_passes_the_union_rule(tmp_path) -> None:
+    from stages.complete.voxel_checkpoint import VoxelMeta, load_voxel_checkpoint, save_voxel_checkpoint
+    from stages.complete.voxel_table3 import GATES, decide_gate, gate_row
+
+    def table(split: str, f_by_gate: dict[float, tuple[float, float]]) -> dict:
+        overall = {"voxel": {"cd_l2": 0.8, "fscore_0.15": 0.60}}
+        overall |= {gate_row(g): {"cd_l2": cd, "fscore_0.15": f} for g, (cd, f) in f_by_gate.items()}
+        return {"split": split, "scenes": ["a"], "overall": overall}
+
+    gates = [g for g in GATES if g <= 0.3]
+    # F recovers as the gate rises; the first gate within 0.01 of the model alone (and below its CD-l2) wins
+    rows = {g: (0.3 + g, 0.5 + 0.4 * g) for g in gates}
+    assert decide_gate(table("val", rows), 0.3) == 0.25
+    assert decide_gate(table("val", {g: (0.9, 0.7) for g in gates}), 0.3) is None  # CD-l2 never better
+    assert decide_gate(table("val", {g: (0.3, 0.6) for g in gates}), 0.3) == 0.0  # the plain union passes
+    with pytest.raises(ValueError, match="validation scenes only"):
+        decide_gate(table("test", rows), 0.3)
+    with pytest.raises(ValueError, match="no row for gate"):
+        decide_gate(table("val", {0.0: (0.9, 0.1)}), 0.3)
+    model = VoxelUNet(VoxelNetConfig(widths=(3, 4)))
+    path = save_voxel_checkpoint(tmp_path / "g.safetensors", model,
+                                 VoxelMeta(model.config, RES, 0.4, Band(), union_radar=True, union_gate=0.25))
+    assert load_voxel_checkpoint(path)[1].union_gate == 0.25

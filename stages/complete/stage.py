@@ -349,7 +349,8 @@ class CompleteStage(Stage):
             pred = predict_tiles(model, keys, traj, res, meta.band, core=core, device=device, advance=advance,
                                  bf16=p.bf16)
         wall = time.perf_counter() - t0
-        out = key_centres(completed_keys(pred, meta.threshold, keys if meta.union_radar else None), res)
+        out = key_centres(completed_keys(pred, meta.threshold, keys if meta.union_radar else None,
+                                         meta.union_gate), res)
         return out, {
             "_counts": np.ones(len(out), np.int32),
             "model": "voxel",
@@ -364,6 +365,7 @@ class CompleteStage(Stage):
             "n_parameters": n_parameters(model),
             "threshold": meta.threshold,
             "union_radar": meta.union_radar,
+            "union_gate": meta.union_gate,
             "n_tiles": pred.n_tiles,
             "n_tiles_skipped": pred.n_skipped,
             "n_voxels_run": pred.n_voxels_run,

@@ -29,6 +29,8 @@ class VoxelMeta:
     #: add the (pre-filtered) radar voxels to the predicted ones (decided on the validation scenes)
     union_radar: bool = False
     train: dict[str, Any] = field(default_factory=dict)
+    #: with ``union_radar``: only radar voxels whose predicted probability is at least this are added (0: all)
+    union_gate: float = 0.0
 
     def to_strings(self) -> dict[str, str]:
         return {
@@ -42,6 +44,7 @@ class VoxelMeta:
             "channels": json.dumps(list(self.channels)),
             "union_radar": json.dumps(bool(self.union_radar)),
             "train": json.dumps(self.train),
+            "union_gate": repr(float(self.union_gate)),
         }
 
     @classmethod
@@ -60,7 +63,8 @@ class VoxelMeta:
             raise UserError(f"{where}: trained on channels {list(channels)}, this code computes {list(CHANNELS)}")
         return cls(VoxelNetConfig.from_dict(json.loads(d["model_config"])), float(d["resolution"]),
                    float(d["threshold"]), Band(**json.loads(d["band"])), channels,
-                   bool(json.loads(d.get("union_radar", "false"))), json.loads(d.get("train", "{}")))
+                   bool(json.loads(d.get("union_radar", "false"))), json.loads(d.get("train", "{}")),
+                   float(d.get("union_gate", "0.0")))
 
 
 def checkpoint_kind(path: str | Path) -> str:

@@ -277,12 +277,39 @@ def dense_prediction(pred: TilePrediction, lo: Sequence[int], shape: Sequence[in
     return grid
 
 
-def completed_keys(pred: TilePrediction, threshold: float, radar_keys: I64 | None = None) -> I64:
-    """The completed map's voxel keys: band voxels with probability >= ``threshold``, plus ``radar_keys``
-    (the pre-filtered radar map) when given (the union), unique and sorted."""
+def probabilities_at(pred: TilePrediction, keys: I64) -> npt.NDArray[np.float32]:
+    """The predicted probability of each of ``keys`` (0 where the prediction holds no such voxel)."""
+    keys = np.asarray(keys, np.int64).reshape(-1, 3)
+    out = np.zeros(len(keys), np.float32)
+    if len(keys) == 0 or len(pred.keys) == 0:
+        return out
+    lo = np.minimum(pred.keys.min(axis=0), keys.min(axis=0))
+    span = np.maximum(pred.keys.max(axis=0), keys.max(axis=0)) - lo + 1
+
+    def flat(k: I64) -> I64:
+        d = k - lo
+        return np.asarray((d[:, 0] * span[1] + d[:, 1]) * span[2] + d[:, 2], np.int64)
+
+    have = flat(pred.keys)
+    order = np.argsort(have, kind="stable")
+    want = flat(keys)
+    i = np.clip(np.searchsorted(have, want, sorter=order), 0, len(have) - 1)
+    hit = have[order[i]] == want
+    out[hit] = pred.probs[order[i[hit]]]
+    return out
+
+
+def completed_keys(pred: TilePrediction, threshold: float, radar_keys: I64 | None = None,
+                   radar_gate: float = 0.0) -> I64:
+    """The completed map's voxel keys: band voxels with probability >= ``threshold``, plus the voxels of
+    ``radar_keys`` (the pre-filtered radar map) when given (the union) whose own predicted probability is at
+    least ``radar_gate`` (0: every radar voxel, the plain union), unique and sorted."""
     keys = pred.keys[pred.probs >= threshold]
     if radar_keys is not None and len(radar_keys):
-        keys = np.concatenate([keys, np.asarray(radar_keys, np.int64)])
+        rk = np.asarray(radar_keys, np.int64)
+        if radar_gate > 0:
+            rk = rk[probabilities_at(pred, rk) >= radar_gate]
+        keys = np.concatenate([keys, rk])
     if len(keys) == 0:
         return np.zeros((0, 3), np.int64)
     return np.unique(keys, axis=0)
