@@ -304,10 +304,11 @@ def test_select_rows_equals_fancy_indexing_and_copies() -> None:
 
 
 @pytest.mark.parametrize("weighting", [HilbertWeighting(et_variance="taylor"), HilbertWeighting(et_variance="exact"),
-                                       HilbertWeighting(use_variance=False), HilbertWeighting(endpoint_tolerance=0.0)])
+                                       HilbertWeighting(use_variance=False), HilbertWeighting(endpoint_tolerance=0.0),
+                                       HilbertWeighting(support_variance=8.0, exponent=0.5)])
 def test_fused_blocked_step_equals_weight_then_update(weighting: HilbertWeighting) -> None:
     """``weigh_and_update`` (information form: one pass, blocks of particles) against ``log_likelihood``
-    followed by ``update`` on the unblocked maps."""
+    followed by ``update`` on the unblocked maps (with common support: one mask over every block's particles)."""
     rng = np.random.default_rng(12)
     b = hm.make_basis([8.0, 8.0], [0.0, 0.0], 64)
     fused = HilbertParticleMaps(b, 5, MapModel(1.5, 16.0, 0.36, weighting, form="information"))
@@ -403,3 +404,38 @@ def test_endpoint_noise_fused_step_and_workers_equal_weight_then_update() -> Non
         for k in (0, 4):
             np.testing.assert_allclose(fused.map_of(k)[1], ref.map_of(k)[1], atol=1e-12)
             np.testing.assert_allclose(par.map_of(k)[1], ref.map_of(k)[1], atol=1e-9)
+
+
+def test_common_support_scores_every_particle_on_the_samples_all_have_seen() -> None:
+    """``common_support_total`` against a brute-force mask: a sample counts only if its predictive variance is below
+    ``support_variance`` for every particle; with a threshold above every variance it is the paper's weight."""
+    from dataclasses import replace
+
+    from stages.slam.rbpf import common_support_total
+
+    rng = np.random.default_rng(5)
+    b, theta, cov = _trained_maps(4, rng)
+    poses = np.column_stack([rng.uniform(-1, 1, (4, 2)), rng.uniform(-0.3, 0.3, 4)])
+    s = sample_beams(rng.uniform(-5, 5, (12, 2)), [0.1, 0.0], 0.8, 6.0)
+    w = HilbertWeighting(exponent=0.5)
+    terms, var = hilbert_log_likelihood(b, theta, cov, poses, s, w, per_sample=True)
+    assert terms.shape == var.shape == (4, s.n)
+    np.testing.assert_allclose(common_support_total(terms, var, w), hilbert_log_likelihood(b, theta, cov, poses, s, w))
+    cut = float(np.median(var.max(axis=0)))  # half the samples are below it for every particle
+    ws = replace(w, support_variance=cut)
+    seen = [i for i in range(s.n) if all(var[k, i] < cut for k in range(4))]
+    assert 0 < len(seen) < s.n
+    want = [0.5 * sum(terms[k, i] for i in seen) for k in range(4)]
+    np.testing.assert_allclose(common_support_total(terms, var, ws), want)
+    assert np.array_equal(common_support_total(terms, None, ws), common_support_total(terms, None, w))
+
+
+def test_common_support_parameter_runs_in_process_only() -> None:
+    from stages.slam.stage import SlamParams
+
+    with pytest.raises(ValueError, match="workers = 0"):
+        SlamParams(common_support=0.5)  # default workers = 2
+    cfg = SlamParams(common_support=0.5, workers=0).config()
+    assert cfg.support_variance == pytest.approx(0.5 * 16.0)
+    assert cfg.weighting("rich_slam").support_variance == pytest.approx(8.0)
+    assert cfg.for_method("rich_slam_paper").weighting("rich_slam_paper").support_variance is None

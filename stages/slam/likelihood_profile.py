@@ -97,7 +97,7 @@ def submap_profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], 
     """Profiles of the weight against local submaps (``cfg.submaps``, ``cfg.submap_lengthscale_m``): the
     submaps are built along ground truth as the filter builds them (opened and closed as it moves), and each
     test scan is scored against the submap the filter would weigh it against."""
-    from stages.slam.submaps import SubmapParticleMaps
+    from stages.slam.submaps import Submap, SubmapParticleMaps
 
     assert cfg.submaps is not None
     w = cfg.weighting("rich_slam")
@@ -111,10 +111,12 @@ def submap_profiles(gt: F64, scans: Sequence[BeamSamples], test: Sequence[int], 
             sub.weigh_and_update(gt[i : i + 1], scans[i])
         done = k
         target = sub.weighing(gt[k : k + 1])
-        if scans[k].n == 0 or target is None:
+        if scans[k].n == 0 or not isinstance(target, Submap):  # the profile's submaps are never kept
             continue
         count += 1
-        theta, cov = target.maps.map_of(0)  # type: ignore[attr-defined]  # in-process maps
+        maps = target.maps
+        assert isinstance(maps, HilbertParticleMaps)  # in-process maps
+        theta, cov = maps.map_of(0)
         for axis in ("forward", "lateral", "yaw"):
             poses, _ = offset_poses(gt[k], axis)
             n = len(poses)

@@ -98,6 +98,9 @@ class SlamConfig:
     refinement: PoseRefinement = field(default_factory=lambda: PoseRefinement(iterations=3))
     #: weight of the free samples' log terms against the endpoints' (1: the paper, eq. 23)
     free_weight: float = 1.0
+    #: common support (:func:`rbpf.common_support_total`): only samples whose predictive variance is below this for
+    #: every particle are scored (None: all, the paper; ``rich_slam_paper`` always)
+    support_variance: float | None = None
     #: sigma_n^2 of the endpoints' +1 labels in the map update (None: ``noise_variance`` for all, eq. 15)
     endpoint_noise_variance: float | None = None
     #: the Hilbert filters' particle maps: local submaps (:mod:`submaps`) or None, one global map over the
@@ -119,7 +122,7 @@ class SlamConfig:
         if method not in PAPER_METHODS:
             return self
         return replace(self, proposal="gmapping", yaw_bias=None, estimate="best_per_scan", likelihood_exponent=1.0,
-                       submaps=None)
+                       submaps=None, support_variance=None)
 
     def map_model(self, method: str, form: Literal["information", "covariance"] = "information") -> MapModel:
         """The particle maps' parameter object of a Hilbert method (every backend takes it)."""
@@ -136,6 +139,7 @@ class SlamConfig:
             et_variance=self.et_variance,
             exponent=self.likelihood_exponent,
             free_weight=self.free_weight,
+            support_variance=self.support_variance,
         )
 
 

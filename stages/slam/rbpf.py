@@ -237,6 +237,9 @@ class HilbertWeighting:
     exponent: float = 1.0
     #: weight of the free samples' log terms against the endpoints' (1 = the paper, eq. 23)
     free_weight: float = 1.0
+    #: common support: score a scan only on the samples that every particle's map has seen, i.e. whose predictive
+    #: variance (eq. 27) is below this for every particle (None: every sample, the paper)
+    support_variance: float | None = None
 
 
 @dataclass(frozen=True)
@@ -340,8 +343,13 @@ def hilbert_log_likelihood(
     jac_t: F64 | None = None,
     ring: tuple[F64, F64] | None = None,
     mean: F64 | None = None,
-) -> F64:
+    per_sample: bool = False,
+) -> Any:
     """Per-particle ``log Pr(z~[i] | x_k[i], D_k[i-1])`` (eq. 23-30), batched over particles.
+
+    ``per_sample``: instead, every sample's term ``(Np, N)`` (free samples times ``free_weight``, endpoints with
+    their tolerance; no exponent) and the predictive variances ``(Np, N)`` (None for the mean-only weight), for
+    :func:`common_support_total`.
 
     ``cov`` is the stack of covariances ``(Np, M, M)`` or a metric of the information form.
     ``phi`` ``(Np, N, M)``, ``phi_t`` (its metric transform) and, for the Taylor tolerance, the endpoint
@@ -364,6 +372,12 @@ def hilbert_log_likelihood(
         var = np.maximum(metric.inner(phi_t, phi, phi_t, phi), 0.0)
     log_o, log_free = log_occupancy_terms(mean, var)
     pos = samples.labels > 0
+    if per_sample:
+        terms = np.where(pos, log_o, weighting.free_weight * log_free)
+        if weighting.endpoint_tolerance > 0 and np.any(pos):
+            terms[:, pos] = _endpoint_tolerant_log_o(basis, theta, metric, poses, samples, weighting, phi, phi_t,
+                                                     mean, var, jac, jac_t, ring)
+        return terms, var
     total = weighting.free_weight * np.sum(log_free[:, ~pos], axis=1)
     if weighting.endpoint_tolerance > 0 and np.any(pos):
         et = _endpoint_tolerant_log_o(basis, theta, metric, poses, samples, weighting, phi, phi_t, mean, var,
@@ -372,6 +386,18 @@ def hilbert_log_likelihood(
     else:
         total = total + np.sum(log_o[:, pos], axis=1)
     return weighting.exponent * total
+
+
+def common_support_total(terms: F64, var: F64 | None, weighting: HilbertWeighting) -> F64:
+    """The scan's log-likelihood per particle from its per-sample terms: summed over the samples whose predictive
+    variance is below ``weighting.support_variance`` for *every* particle (all samples when unset or without
+    variances), times the exponent. Scoring every particle on the same samples keeps a hypothesis that turns the
+    scan towards space its map has not seen (o = 0.5, eq. 28) from scoring better than one whose samples fall on a
+    map that is only approximately right."""
+    if weighting.support_variance is not None and var is not None:
+        keep = np.all(var < weighting.support_variance, axis=0)
+        return np.asarray(weighting.exponent * (terms @ keep.astype(terms.dtype)))
+    return np.asarray(weighting.exponent * np.sum(terms, axis=1))
 
 
 def _endpoint_tolerant_log_o(
@@ -608,6 +634,11 @@ class HilbertParticleMaps:
         if samples.n == 0:
             return np.zeros(len(poses))
         phi, phi_t, jac, jac_t, ring, mean = self._products(poses, samples)
+        if self.weighting.support_variance is not None:
+            terms, var = hilbert_log_likelihood(self.basis, self.theta, self.metric, poses, samples, self.weighting,
+                                                phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring, mean=mean,
+                                                per_sample=True)
+            return common_support_total(terms, var, self.weighting)
         return hilbert_log_likelihood(self.basis, self.theta, self.metric, poses, samples, self.weighting,
                                       phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring, mean=mean)
 
@@ -626,15 +657,26 @@ class HilbertParticleMaps:
             self.update(poses, samples)
             return ll
         out = np.empty(len(poses))
+        support = self.weighting.support_variance is not None
+        terms = np.empty((len(poses), samples.n)) if support else out
+        var: F64 | None = np.empty((len(poses), samples.n)) if support else None
         step = self.block_size(samples)
         for lo in range(0, len(poses), step):
             p = poses[lo : lo + step]
             phi, phi_t, jac, jac_t, ring, mean = self._products(p, samples, fuse_update=True, first=lo)
-            out[lo : lo + step] = hilbert_log_likelihood(
+            res = hilbert_log_likelihood(
                 self.basis, self.theta[lo : lo + step], self.metric, p, samples, self.weighting,
-                phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring, mean=mean)
+                phi=phi, phi_t=phi_t, jac=jac, jac_t=jac_t, ring=ring, mean=mean, per_sample=support)
+            if support:
+                terms[lo : lo + step] = res[0]
+                if var is not None and res[1] is not None:
+                    var[lo : lo + step] = res[1]
+                else:
+                    var = None
+            else:
+                out[lo : lo + step] = res
         self._cache = None
-        return out
+        return common_support_total(terms, var, self.weighting) if support else out
 
     def block_size(self, samples: BeamSamples) -> int:
         """Particles per block of :meth:`weigh_and_update`: about ``block_bytes`` of rows (samples and

@@ -123,6 +123,10 @@ class SlamParams(StageParams):
         " rich_slam_paper: always 1)")
     grid_likelihood_exponent: float = Field(1.0, gt=0, description="fastslam_grid: exponent on its scan likelihood "
                                             "(1 was better on the calibration runs)")
+    common_support: float | None = Field(
+        None, gt=0, le=1, description="score each scan only on the samples every particle's map has seen: predictive "
+        "variance below this fraction of signal_variance for every particle (stages/slam/README.md; unset: every "
+        "sample, the paper; rich_slam_paper: always unset). Needs workers = 0 and backend = numpy")
     free_weight: float = Field(1.0, ge=0, description="weight of the free samples' log terms against the endpoints' "
                                "in every Hilbert method's weight (1: the paper, eq. 23)")
     # -- pose refinement (rich_slam_refined, stages/slam/pose_refinement.py)
@@ -222,6 +226,9 @@ class SlamParams(StageParams):
                              "slam.backend = numpy or leave endpoint_noise_variance unset")
         if self.backend == "numpy" and self.device == "cuda":
             raise ValueError("device = cuda needs backend = torch (the numpy backend runs on the cpu)")
+        if self.common_support is not None and (self.workers > 0 or self.backend != "numpy"):
+            raise ValueError("common_support compares every particle's samples in one process: set slam.workers = 0 "
+                             "and slam.backend = numpy, or leave common_support unset")
         return self
 
     def submap_model(self) -> SubmapModel:
@@ -257,6 +264,7 @@ class SlamParams(StageParams):
                 noise_variance=self.noise_variance,
                 endpoint_noise_variance=self.endpoint_noise_variance),
             free_weight=self.free_weight, endpoint_noise_variance=self.endpoint_noise_variance,
+            support_variance=None if self.common_support is None else self.common_support * self.signal_variance,
         )
 
 
