@@ -20,6 +20,8 @@ from stages.slam.rbpf import (
     normalize_log_weights,
     odometry_increments,
     propagate,
+    restore_mean,
+    weighted_mean_pose,
     wrap_angle,
 )
 from stages.slam.synthetic import make_run
@@ -439,3 +441,71 @@ def test_common_support_parameter_runs_in_process_only() -> None:
     assert cfg.support_variance == pytest.approx(0.5 * 16.0)
     assert cfg.weighting("rich_slam").support_variance == pytest.approx(8.0)
     assert cfg.for_method("rich_slam_paper").weighting("rich_slam_paper").support_variance is None
+
+
+class _NoiseMaps:
+    """Weights that know nothing: each particle's log-likelihood is a random draw, independent of its pose."""
+
+    def __init__(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def log_likelihood(self, poses: np.ndarray, samples: BeamSamples) -> np.ndarray:
+        return self.rng.normal(0.0, 1.5, len(poses))
+
+    def update(self, poses: np.ndarray, samples: BeamSamples) -> None:
+        pass
+
+    def select(self, indices: np.ndarray) -> None:
+        pass
+
+
+def test_restore_mean_sets_the_first_moment_across_the_yaw_cut() -> None:
+    rng = np.random.default_rng(3)
+    p = np.c_[rng.normal(1.0, 0.2, (40, 2)), np.pi - 0.02 + rng.normal(0, 0.05, 40)]  # yaws straddle +-pi
+    target = np.array([1.3, 0.7, -np.pi + 0.01])
+    out, d = restore_mean(p, target)
+    m = weighted_mean_pose(out, np.full(40, 1 / 40))
+    np.testing.assert_allclose(m[:2], target[:2], atol=1e-12)
+    assert abs(wrap_angle(m[2] - target[2])) < 1e-12
+    np.testing.assert_allclose(np.diff(out - p, axis=0), 0.0, atol=1e-12)  # one shift for every particle
+    assert abs(d[2]) < 0.2  # the short way round, not 2 pi
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_keep_mean_resampling(keep: bool) -> None:
+    """With keep_mean the cloud's mean after every resampling is the weighted mean before it; without it the
+    difference (resampling's Monte Carlo error) is recorded and is not zero."""
+    empty = sample_beams(np.zeros((0, 2)), [0, 0], 1.0, 5.0)
+    f = RBPF(_NoiseMaps(1), [0.0, 0.0, 0.0], 30, MotionNoise(0.05, 0.02), np.random.default_rng(2), keep_mean=keep)
+    for i in range(40):
+        f.step([0.1, 0.0, 0.01], empty, first=i == 0)
+        if f.history.resampled[-1]:
+            after = weighted_mean_pose(f.poses, np.full(f.n_particles, 1 / f.n_particles))
+            before = f.history.mean_pose[-1]
+            gap = np.r_[after[:2] - before[:2], wrap_angle(after[2] - before[2])]
+            np.testing.assert_allclose(gap, 0.0 if keep else f.history.resample_shift[-1], atol=1e-12)
+    shifts = np.asarray(f.history.resample_shift)
+    assert sum(f.history.resampled) == len(shifts) > 10
+    assert np.abs(shifts).max() > 1e-4  # the error that keep_mean removes exists
+
+
+def test_smoothed_trajectory_equals_brute_force_ancestry() -> None:
+    """The smoother's mean at scan k is the final-weighted mean of each final particle's ancestor at k, traced
+    one particle at a time; at the last scan it is the filter's weighted mean."""
+    empty = sample_beams(np.zeros((0, 2)), [0, 0], 1.0, 5.0)
+    f = RBPF(_NoiseMaps(4), [0.0, 0.0, 0.0], 20, MotionNoise(0.05, 0.02), np.random.default_rng(7))
+    for i in range(25):
+        f.step([0.1, 0.0, 0.02], empty, first=i == 0)
+    h = f.history
+    assert sum(h.resampled) > 3
+    sm = h.smoothed_trajectory()
+    w = h.final_weights
+    for k in (0, 7, 24):
+        anc = []
+        for j in range(len(w)):
+            a = j
+            for i in range(24, k, -1):
+                a = int(h.parents[i][a])
+            anc.append(h.particles[k][a])
+        np.testing.assert_allclose(sm[k], weighted_mean_pose(np.array(anc), w), atol=1e-12)
+    np.testing.assert_allclose(sm[-1], h.mean_trajectory()[-1], atol=1e-12)

@@ -111,7 +111,7 @@ def test_weighted_mean_stays_on_the_odometry_where_the_weights_say_nothing() -> 
     motion = OdometryMotion(np.tile(np.diag([0.01, 0.01, 0.004]) ** 2, (n, 1, 1)), np.full(n, 0.1))
     cfg = SlamConfig(n_particles=100, workers=0, proposal="odometry_covariance", estimate="weighted_mean")
     r = run_method("rich_slam", run.odometry, [empty] * n, basis, cfg, seed=0, motion=motion)
-    assert set(r.estimates) == {"best_per_scan", "final_best_history", "weighted_mean"}
+    assert set(r.estimates) == {"best_per_scan", "final_best_history", "weighted_mean", "smoothed"}
     np.testing.assert_array_equal(r.poses, r.estimates["weighted_mean"])
     yaw = {k: np.abs(wrap_angle(v[:, 2] - run.odometry[:, 2])) for k, v in r.estimates.items()}
     spread = 0.004 * np.sqrt(n)  # the particles' heading spread at the end (rad)

@@ -68,10 +68,12 @@ def _filter(corridor: dict[str, Any], backend: str, form: str, new_proposal: boo
     maps: Any
     if backend == "numpy":
         maps = HilbertParticleMaps(b, N_P, MapModel(2.0, 16.0, 0.36, w, form=form))  # type: ignore[arg-type]
-        f: Any = RBPF(maps, corridor["run"].odometry[0], N_P, MotionNoise(), rng, proposal=proposal)
+        f: Any = RBPF(maps, corridor["run"].odometry[0], N_P, MotionNoise(), rng, proposal=proposal,
+                      keep_mean=new_proposal)
     else:
         maps = TorchHilbertMaps(b, N_P, MapModel(2.0, 16.0, 0.36, w, form=form), **kw)  # type: ignore[arg-type]
-        f = TorchRBPF(maps, corridor["run"].odometry[0], N_P, MotionNoise(), rng, proposal=proposal)
+        f = TorchRBPF(maps, corridor["run"].odometry[0], N_P, MotionNoise(), rng, proposal=proposal,
+                      keep_mean=new_proposal)
     logw: list[np.ndarray] = []
 
     def record(i: int, filt: Any, best: int) -> None:
@@ -83,7 +85,7 @@ def _filter(corridor: dict[str, Any], backend: str, form: str, new_proposal: boo
     return {"history": h, "logw": np.asarray(logw), "maps": final}
 
 
-def test_torch_filter_equals_numpy_filter_with_the_odometry_covariance_and_bias_state(
+def test_torch_filter_equals_numpy_filter_with_the_odometry_covariance_bias_state_and_kept_mean(
         corridor: dict[str, Any]) -> None:
     a = _filter(corridor, "numpy", "information", new_proposal=True)
     t = _filter(corridor, "torch", "information", new_proposal=True)
@@ -95,6 +97,9 @@ def test_torch_filter_equals_numpy_filter_with_the_odometry_covariance_and_bias_
     # the weighted-mean estimate (slam.estimate = weighted_mean) is the same on both backends
     np.testing.assert_allclose(ht.mean_trajectory(), ha.mean_trajectory(), atol=1e-10)
     assert np.abs(ha.mean_trajectory() - ha.best_trajectory()).max() > 0
+    # resampling that keeps the weighted mean (slam.resample_keep_mean), and the smoother's estimate
+    assert np.abs(np.asarray(ha.resample_shift)).max() > 1e-6
+    np.testing.assert_allclose(ht.smoothed_trajectory(), ha.smoothed_trajectory(), atol=1e-10)
 
 
 @pytest.fixture(scope="module")

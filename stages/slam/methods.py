@@ -43,8 +43,8 @@ HILBERT_METHODS = ("rich_slam", "rich_slam_no_et", "rich_slam_mean_only", "rich_
 #: the paper's configuration (Sec. IV): the fixed GMapping-form proposal, no bias state, one global map
 PAPER_METHODS = ("rich_slam_paper",)
 #: how a filter's trajectory is read from its particles (``SlamConfig.estimate``)
-Estimate = Literal["best_per_scan", "final_best_history", "weighted_mean"]
-ESTIMATES: tuple[Estimate, ...] = ("best_per_scan", "final_best_history", "weighted_mean")
+Estimate = Literal["best_per_scan", "final_best_history", "weighted_mean", "smoothed"]
+ESTIMATES: tuple[Estimate, ...] = ("best_per_scan", "final_best_history", "weighted_mean", "smoothed")
 ProposalKind = Literal["odometry_covariance", "gmapping"]
 #: methods whose particles are refined against their own maps before weighting (pose_refinement.py)
 REFINED_METHODS = ("rich_slam_refined",)
@@ -79,6 +79,8 @@ class SlamConfig:
     yaw_bias: YawBias | None = None
     resampling: Resampling = "systematic"
     resample_threshold: float = 0.5
+    #: resampling keeps the weighted mean pose (:func:`rbpf.restore_mean`); ``rich_slam_paper`` never
+    resample_keep_mean: bool = False
     map_update: Literal["kalman", "laplace"] = "kalman"
     map_form: Literal["auto", "information", "covariance"] = "auto"
     laplace_iterations: int = 20
@@ -122,7 +124,7 @@ class SlamConfig:
         if method not in PAPER_METHODS:
             return self
         return replace(self, proposal="gmapping", yaw_bias=None, estimate="best_per_scan", likelihood_exponent=1.0,
-                       submaps=None, support_variance=None)
+                       submaps=None, support_variance=None, resample_keep_mean=False)
 
     def map_model(self, method: str, form: Literal["information", "covariance"] = "information") -> MapModel:
         """The particle maps' parameter object of a Hilbert method (every backend takes it)."""
@@ -302,13 +304,14 @@ def run_method(
         try:
             refinement = cfg.refinement if method in REFINED_METHODS else None
             f = RBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold,
-                     refinement=refinement, basis=basis, exponent=cfg.likelihood_exponent, proposal=proposal)
+                     refinement=refinement, basis=basis, exponent=cfg.likelihood_exponent, proposal=proposal,
+                     keep_mean=cfg.resample_keep_mean)
             h = f.run(odometry_increments(odometry), scans, observer=keep_best, on_step=on_step)
         finally:
             if isinstance(maps, ParallelHilbertMaps | SubmapParticleMaps | HybridParticleMaps):
                 maps.close()
     estimates = {"best_per_scan": h.best_trajectory(), "final_best_history": h.final_best_history(),
-                 "weighted_mean": h.mean_trajectory()}
+                 "weighted_mean": h.mean_trajectory(), "smoothed": h.smoothed_trajectory()}
     poses = estimates[cfg.estimate]
     return MethodResult(
         method, poses, np.asarray(h.n_eff), time.perf_counter() - t0, int(np.sum(h.resampled)),
@@ -340,7 +343,7 @@ def _run_torch(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, form: Liter
         raise ValueError("endpoint_noise_variance runs on the numpy backend only; set slam.backend = numpy")
     maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.map_model(method, form), device=device)
     f = TorchRBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold,
-                  proposal=proposal)
+                  proposal=proposal, keep_mean=cfg.resample_keep_mean)
     with cpu_threads(cfg.torch_threads if device == "cpu" else 0):
         return f.run(odometry_increments(odometry), scans, observer=observer,  # type: ignore[arg-type]
                      on_step=on_step)

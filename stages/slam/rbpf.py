@@ -768,6 +768,22 @@ def weighted_mean_pose(poses: F64, w: F64) -> F64:
     return np.array([xy[0], xy[1], yaw])
 
 
+def restore_mean(resampled: F64, target: F64) -> tuple[F64, F64]:
+    """Shift the resampled (equally weighted) poses so that their mean (:func:`weighted_mean_pose`) is
+    ``target``, the weighted mean before resampling; returns the shifted poses and the shift (dx, dy, dyaw).
+
+    Resampling adds no information: it only replaces weights by copies. Its Monte Carlo error moves the
+    cloud's mean by about the cloud's spread over sqrt(N) each time, and where the weights are nearly flat
+    these moves add up to a random walk away from the odometry (genetic drift). Restoring the first moment
+    removes that walk and leaves the spread's resampling as it was. The yaw shift is exact on the circular
+    mean (every unit vector turns by the same angle); positions move by the same vector."""
+    p = np.asarray(resampled, dtype=np.float64).reshape(-1, 3)
+    now = weighted_mean_pose(p, np.full(len(p), 1.0 / len(p)))
+    d = np.asarray(target, dtype=np.float64) - now
+    d[2] = (d[2] + np.pi) % (2 * np.pi) - np.pi
+    return p + d, d
+
+
 @dataclass
 class StepResult:
     best: int
@@ -790,6 +806,11 @@ class FilterHistory:
     yaw_bias: list[float] = field(default_factory=list)
     #: the weighted mean pose per scan (:func:`weighted_mean_pose`, before resampling)
     mean_pose: list[F64] = field(default_factory=list)
+    #: at each resampling, the mean of the resampled poses minus the weighted mean before it (dx, dy, dyaw):
+    #: resampling's own Monte Carlo error of the first moment (removed with ``keep_mean``)
+    resample_shift: list[F64] = field(default_factory=list)
+    #: the normalised weights of the last scan, before its resampling (the smoother's weights)
+    final_weights: F64 = field(default_factory=lambda: np.zeros(0))
 
     def best_trajectory(self) -> F64:
         """Algorithm 1 line 9: the largest-weight particle's pose at every step."""
@@ -798,6 +819,22 @@ class FilterHistory:
     def mean_trajectory(self) -> F64:
         """The posterior-mean pose at every step (:func:`weighted_mean_pose` of the weighted particles)."""
         return np.asarray(self.mean_pose).reshape(-1, 3)
+
+    def smoothed_trajectory(self) -> F64:
+        """The particle smoother's mean (Kitagawa's genealogy smoother): at every scan, the weighted mean
+        (:func:`weighted_mean_pose`) of the final particles' ancestors, with the final weights: an estimate
+        of E[x_k | z_1:T], which uses the scans after k (a loop closed later moves the poses before it), where
+        :meth:`mean_trajectory` is E[x_k | z_1:k]."""
+        T = len(self.particles)
+        out = np.zeros((T, 3))
+        if T == 0:
+            return out
+        w = np.asarray(self.final_weights, dtype=np.float64)
+        a = np.arange(len(w))
+        for i in range(T - 1, -1, -1):
+            out[i] = weighted_mean_pose(self.particles[i][a], w)
+            a = np.asarray(self.parents[i])[a]
+        return out
 
     def final_best_history(self) -> F64:
         """The trajectory history ``x_k*[1:T]`` of the final best particle (ancestry traced back)."""
@@ -828,10 +865,12 @@ class RBPF:
         basis: hm.HilbertBasis | None = None,
         exponent: float = 1.0,
         proposal: Proposal | None = None,
+        keep_mean: bool = False,
     ) -> None:
         """``refinement`` (with the maps' ``basis``; Hilbert maps only): the Laplace proposal of
         :mod:`pose_refinement` instead of eq. 21's; ``exponent`` is the scan likelihood's, as in the weights.
-        ``proposal``: the motion noise and bias state (default: GMapping's form with ``noise``, no bias)."""
+        ``proposal``: the motion noise and bias state (default: GMapping's form with ``noise``, no bias).
+        ``keep_mean``: resampling keeps the weighted mean pose (:func:`restore_mean`)."""
         if refinement is not None and refinement.enabled and (basis is None or not hasattr(maps, "theta")):
             raise ValueError("pose refinement needs Hilbert-GP particle maps and their basis")
         self.refinement = refinement if refinement is not None and refinement.enabled else None
@@ -845,6 +884,7 @@ class RBPF:
         self.proposal = proposal if proposal is not None else Proposal(noise, n_particles, rng)
         self.resampler = RESAMPLERS[resampling]
         self.resample_threshold = resample_threshold
+        self.keep_mean = keep_mean
         self.history = FilterHistory()
         self._parents = np.arange(n_particles)
 
@@ -882,13 +922,16 @@ class RBPF:
         self.history.parents.append(self._parents)
         self.history.yaw_bias.append(self.proposal.bias_mean(w))
         self.history.mean_pose.append(weighted_mean_pose(self.poses, w))
+        self.history.final_weights = w
         if observer is not None:
             observer(self, best)
         resampled = n_eff < self.resample_threshold * self.n_particles
         self._parents = np.arange(self.n_particles)
         if resampled:
             idx = self.resampler(w, self.rng)
-            self.poses = self.poses[idx]
+            shifted, shift = restore_mean(self.poses[idx], self.history.mean_pose[-1])
+            self.history.resample_shift.append(-shift)
+            self.poses = shifted if self.keep_mean else self.poses[idx]
             self.maps.select(idx)
             self.proposal.select(idx)
             self.logw = np.full(self.n_particles, -np.log(self.n_particles))

@@ -171,9 +171,13 @@ class SlamParams(StageParams):
     resampling: Literal["systematic", "stratified", "multinomial"] = Field(
         "systematic", description="resampler (systematic = low variance)")
     resample_threshold: float = Field(0.5, gt=0, le=1, description="resample when N_eff < this * N_p (eq. 31)")
+    resample_keep_mean: bool = Field(False, description="resampling keeps the particles' weighted mean pose "
+                                     "(removes resampling's Monte Carlo drift of the mean; not rich_slam_paper; "
+                                     "stages/slam/README.md)")
     estimate: Estimate = Field(
         "weighted_mean", description="trajectory: the largest-weight particle at each scan (Algorithm 1), the "
-        "final best particle's history, or the weighted mean pose at each scan (x, y arithmetic, yaw circular; "
+        "final best particle's history, the weighted mean pose at each scan (x, y arithmetic, yaw circular), or "
+        "the smoothed mean (the final particles' ancestors with the final weights: uses the later scans too; "
         "stages/slam/README.md); rich_slam_paper: always the first")
     # -- FastSLAM grid baseline
     grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
@@ -250,7 +254,8 @@ class SlamParams(StageParams):
                               self.motion_rot_per_trans, self.motion_trans_per_rot),
             proposal=self.proposal, proposal_scale=self.proposal_scale,
             yaw_bias=YawBias(self.yaw_bias_sigma0, self.yaw_bias_walk, self.yaw_bias_share) if self.yaw_bias else None,
-            resampling=self.resampling, resample_threshold=self.resample_threshold, map_update=self.map_update,
+            resampling=self.resampling, resample_threshold=self.resample_threshold,
+            resample_keep_mean=self.resample_keep_mean, map_update=self.map_update,
             laplace_iterations=self.laplace_iterations, map_form=self.map_form, dtype=self.dtype,
             workers=self.workers, backend=self.backend, device=self.device, torch_threads=self.torch_threads,
             grid=GridModel(self.grid_l_occ, self.grid_l_free, -self.grid_l_clamp, self.grid_l_clamp, 0.0,

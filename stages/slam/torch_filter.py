@@ -86,7 +86,10 @@ class TorchRBPF:
         resampling: Resampling = "systematic",
         resample_threshold: float = 0.5,
         proposal: Proposal | None = None,
+        keep_mean: bool = False,
     ) -> None:
+        """``keep_mean``: resampling keeps the weighted mean pose (as :func:`rbpf.restore_mean`)."""
+        self.keep_mean = keep_mean
         self.maps = maps
         self.device = maps.device
         p0 = torch.as_tensor(np.asarray(initial_pose, dtype=np.float64).reshape(1, 3), device=self.device)
@@ -102,6 +105,7 @@ class TorchRBPF:
         self._particles: list[torch.Tensor] = []
         self._parent_log: list[torch.Tensor] = []
         self._tiny = float(np.finfo(np.float64).tiny)
+        self._last_w: torch.Tensor | None = None
 
     @property
     def n_particles(self) -> int:
@@ -137,6 +141,7 @@ class TorchRBPF:
         h.best_index.append(best)
         h.n_eff.append(n_eff)
         h.mean_pose.append(stats[6:9].copy())
+        self._last_w = w
         self._particles.append(self.poses.clone())
         self._parent_log.append(self._parents)
         h.yaw_bias.append(self.proposal.bias_mean(w.cpu().numpy()) if self.proposal.bias is not None else float("nan"))
@@ -148,6 +153,13 @@ class TorchRBPF:
             pos = torch.as_tensor(resample_positions(self.resampling, self.n_particles, self.rng), device=self.device)
             idx = search_t(w, pos)
             self.poses = self.poses[idx]
+            if self.keep_mean:
+                p = self.poses
+                now = torch.stack([p[:, 0].mean(), p[:, 1].mean(),
+                                   torch.atan2(torch.sin(p[:, 2]).mean(), torch.cos(p[:, 2]).mean())])
+                d = mean_t - now
+                d[2] = torch.remainder(d[2] + np.pi, 2 * np.pi) - np.pi
+                self.poses = p + d
             self.maps.select(idx)
             if self.proposal.bias is not None:
                 self.proposal.select(idx.cpu().numpy())
@@ -164,6 +176,8 @@ class TorchRBPF:
             self.history.particles.extend(list(parts))
             self.history.parents.extend(list(parents))
             self._particles, self._parent_log = [], []
+        if self._last_w is not None:
+            self.history.final_weights = self._last_w.cpu().numpy()
         return self.history
 
     def run(
