@@ -17,6 +17,7 @@ from stages.slam.rbpf import (
     compose,
     effective_sample_size,
     hilbert_log_likelihood,
+    log_occupancy_terms,
     normalize_log_weights,
     odometry_increments,
     propagate,
@@ -509,3 +510,16 @@ def test_smoothed_trajectory_equals_brute_force_ancestry() -> None:
             anc.append(h.particles[k][a])
         np.testing.assert_allclose(sm[k], weighted_mean_pose(np.array(anc), w), atol=1e-12)
     np.testing.assert_allclose(sm[-1], h.mean_trajectory()[-1], atol=1e-12)
+
+
+def test_outlier_mixture_bounds_each_sample_and_is_the_paper_at_zero() -> None:
+    rng = np.random.default_rng(9)
+    mean, var = rng.normal(0, 8, 200), rng.uniform(0, 30, 200)
+    o0, _ = log_occupancy_terms(mean, var)
+    o, f = log_occupancy_terms(mean, var, 0.1)
+    p = 1.0 / (1.0 + np.exp(-mean / np.sqrt(1.0 + np.pi / 8.0 * var)))  # eq. 28
+    np.testing.assert_allclose(np.exp(o0), p, rtol=1e-12)
+    np.testing.assert_allclose(np.exp(o), 0.9 * p + 0.05, rtol=1e-12)
+    np.testing.assert_allclose(np.exp(f), 0.9 * (1 - p) + 0.05, rtol=1e-12)
+    assert o.min() >= np.log(0.05) - 1e-12 and o0.min() < np.log(0.05) - 5  # a sample the map rules out is bounded
+    np.testing.assert_array_equal(log_occupancy_terms(mean, var, 0.0)[0], o0)

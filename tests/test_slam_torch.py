@@ -57,8 +57,9 @@ def corridor() -> dict[str, Any]:
 def _filter(corridor: dict[str, Any], backend: str, form: str, new_proposal: bool = False,
             **kw: Any) -> dict[str, Any]:
     """Run one backend over the corridor; log weights before resampling and the final maps. ``new_proposal``:
-    the odometry-covariance proposal with the yaw-rate bias state (issue 27) instead of GMapping's."""
-    b, w = corridor["basis"], HilbertWeighting(et_variance="taylor")
+    the odometry-covariance proposal with the yaw-rate bias state (issue 27) instead of GMapping's, and the
+    weight's outlier mixture (slam.outlier)."""
+    b, w = corridor["basis"], HilbertWeighting(et_variance="taylor", outlier=0.02 if new_proposal else 0.0)
     rng = np.random.default_rng(0)
     proposal = None
     if new_proposal:

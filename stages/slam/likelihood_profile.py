@@ -9,12 +9,13 @@ field, each averaged over several test scans.
 
     python -m stages.slam.likelihood_profile [RUN_DIR ...] [--scans 8] [--out table.md]
         [--free-weight W ...] [--free-clearance C ...] [--ray-step R ...] [--endpoint-noise S2 ...] [--no-et]
-        [--refine] [--submaps]
+        [--outlier E ...] [--refine] [--submaps]
 
 ``--free-weight`` / ``--free-clearance`` / ``--ray-step`` / ``--endpoint-noise`` add rows for the Hilbert
 weight with the free samples' log terms weighted by W, with no free sample within C metres of the endpoint,
 with a free sample every R metres along the beam (Table II: 1 m), or with a map whose endpoints (+1
 samples) have the noise variance S2 instead of sigma_n^2 (issue 17's levers inside the paper's model).
+``--outlier`` adds the Hilbert weight with outlier probability E (``slam.outlier``).
 ``--no-et`` adds the paper's weight without the endpoint tolerance (``rich_slam_no_et``, the ablation).
 ``--submaps`` adds the weight against local submaps (``submaps.py``) built along ground truth as the filter
 builds them, with the paper's free-sample terms and without them. ``--refine`` adds the refinement table:
@@ -278,6 +279,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ray-step", type=float, nargs="*", default=[], help="extra rows: a free sample every R m")
     ap.add_argument("--endpoint-noise", type=float, nargs="*", default=[],
                     help="extra rows: the endpoints' noise variance S2 in the map (free samples keep sigma_n^2)")
+    ap.add_argument("--outlier", type=float, nargs="*", default=[],
+                    help="extra rows: the Hilbert weight with outlier probability E (slam.outlier)")
     ap.add_argument("--no-et", action="store_true", help="extra row: the weight without the endpoint tolerance")
     ap.add_argument("--refine", action="store_true", help="also the refinement table (where Gauss-Newton ends)")
     ap.add_argument("--submaps", action="store_true", help="also the weight against local submaps (the slam "
@@ -306,6 +309,8 @@ def main(argv: list[str] | None = None) -> int:
             extra[f"hilbert_gp (ray step {step:g} m)"] = (w, load(step=step)[1], None)
         for s2e in a.endpoint_noise:
             extra[f"hilbert_gp (endpoint noise {s2e:g})"] = (w, scans, s2e)
+        for e in a.outlier:
+            extra[f"hilbert_gp (outlier {e:g})"] = (replace(w, outlier=e), scans, None)
         if a.no_et:
             extra["hilbert_gp (variance, no ET)"] = (cfg.weighting("rich_slam_no_et"), scans, None)
         test = np.linspace(len(scans) // 2, len(scans) - 1, a.scans).round().astype(int).tolist()

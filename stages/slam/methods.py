@@ -103,6 +103,9 @@ class SlamConfig:
     #: common support (:func:`rbpf.common_support_total`): only samples whose predictive variance is below this for
     #: every particle are scored (None: all, the paper; ``rich_slam_paper`` always)
     support_variance: float | None = None
+    #: probability that a sample is not explained by the map (:attr:`rbpf.HilbertWeighting.outlier`; 0: the
+    #: paper, ``rich_slam_paper`` always)
+    outlier: float = 0.0
     #: sigma_n^2 of the endpoints' +1 labels in the map update (None: ``noise_variance`` for all, eq. 15)
     endpoint_noise_variance: float | None = None
     #: the Hilbert filters' particle maps: local submaps (:mod:`submaps`) or None, one global map over the
@@ -124,7 +127,7 @@ class SlamConfig:
         if method not in PAPER_METHODS:
             return self
         return replace(self, proposal="gmapping", yaw_bias=None, estimate="best_per_scan", likelihood_exponent=1.0,
-                       submaps=None, support_variance=None, resample_keep_mean=False)
+                       submaps=None, support_variance=None, resample_keep_mean=False, outlier=0.0)
 
     def map_model(self, method: str, form: Literal["information", "covariance"] = "information") -> MapModel:
         """The particle maps' parameter object of a Hilbert method (every backend takes it)."""
@@ -142,6 +145,7 @@ class SlamConfig:
             exponent=self.likelihood_exponent,
             free_weight=self.free_weight,
             support_variance=self.support_variance,
+            outlier=0.0 if method in PAPER_METHODS else self.outlier,
         )
 
 

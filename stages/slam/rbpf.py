@@ -240,6 +240,9 @@ class HilbertWeighting:
     #: common support: score a scan only on the samples that every particle's map has seen, i.e. whose predictive
     #: variance (eq. 27) is below this for every particle (None: every sample, the paper)
     support_variance: float | None = None
+    #: probability that a sample is not explained by the map (clutter, multipath, a moving object): its
+    #: likelihood is then 1/2 whatever the map says (:func:`log_occupancy_terms`); 0 = the paper (eq. 28)
+    outlier: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -308,10 +311,20 @@ class InformationMetric:
 Metric = CovarianceMetric | StackedCovarianceMetric | InformationMetric
 
 
-def log_occupancy_terms(mean: F64, var: F64 | None) -> tuple[F64, F64]:
-    """``log o`` and ``log (1 - o)`` with ``o`` of eq. 28 (mean-only when ``var`` is None)."""
+def log_occupancy_terms(mean: F64, var: F64 | None, outlier: float = 0.0) -> tuple[F64, F64]:
+    """``log o`` and ``log (1 - o)`` with ``o`` of eq. 28 (mean-only when ``var`` is None).
+
+    ``outlier`` = e > 0: each sample is, with probability e, not explained by the map (a clutter detection, a
+    multipath ghost, the free space in front of one) and then scores 1/2 whatever the map: ``log((1 - e) o +
+    e / 2)``. A sample the map calls impossible then costs at most ``log(e / 2)``, as the grid's likelihood
+    field bounds it with ``z_rand`` (Probabilistic Robotics, the beam model's p_rand), instead of outweighing
+    the scan's other samples."""
     x = mean if var is None else mean * hm.probit_scale(var)
-    return hm.log_sigmoid(x), hm.log_sigmoid(-x)
+    lo, lf = hm.log_sigmoid(x), hm.log_sigmoid(-x)
+    if outlier <= 0:
+        return lo, lf
+    a, b = np.log1p(-outlier), np.log(0.5 * outlier)
+    return np.logaddexp(a + lo, b), np.logaddexp(a + lf, b)
 
 
 def endpoint_index(samples: BeamSamples) -> npt.NDArray[np.int64] | slice:
@@ -370,7 +383,7 @@ def hilbert_log_likelihood(
         if phi_t is None:
             phi_t = metric.transform(phi)
         var = np.maximum(metric.inner(phi_t, phi, phi_t, phi), 0.0)
-    log_o, log_free = log_occupancy_terms(mean, var)
+    log_o, log_free = log_occupancy_terms(mean, var, weighting.outlier)
     pos = samples.labels > 0
     if per_sample:
         terms = np.where(pos, log_o, weighting.free_weight * log_free)
@@ -451,8 +464,8 @@ def _endpoint_tolerant_log_o(
             var_q = (var_c[:, :, None] + 2.0 * np.einsum("kbd,qd->kbq", g, offs)
                      + np.einsum("qd,kbde,qe->kbq", offs, G, offs))
             var_q = np.maximum(var_q, 0.0)
-    log_q, _ = log_occupancy_terms(mean_q, var_q)
-    log_c, _ = log_occupancy_terms(mean[:, pos], var_c)
+    log_q, _ = log_occupancy_terms(mean_q, var_q, weighting.outlier)
+    log_c, _ = log_occupancy_terms(mean[:, pos], var_c, weighting.outlier)
     return np.maximum(np.max(log_q, axis=2), log_c)
 
 

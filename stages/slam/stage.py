@@ -123,6 +123,9 @@ class SlamParams(StageParams):
         " rich_slam_paper: always 1)")
     grid_likelihood_exponent: float = Field(1.0, gt=0, description="fastslam_grid: exponent on its scan likelihood "
                                             "(1 was better on the calibration runs)")
+    outlier: float = Field(0.0, ge=0, lt=1, description="probability that a radar sample is not explained by the "
+                           "map (clutter, multipath): it then scores 1/2 whatever the map says, so no sample can "
+                           "outweigh the scan (the grid's z_rand); 0: the paper's eq. 28 (rich_slam_paper always)")
     common_support: float | None = Field(
         None, gt=0, le=1, description="score each scan only on the samples every particle's map has seen: predictive "
         "variance below this fraction of signal_variance for every particle (stages/slam/README.md; unset: every "
@@ -269,6 +272,7 @@ class SlamParams(StageParams):
                 noise_variance=self.noise_variance,
                 endpoint_noise_variance=self.endpoint_noise_variance),
             free_weight=self.free_weight, endpoint_noise_variance=self.endpoint_noise_variance,
+            outlier=self.outlier,
             support_variance=None if self.common_support is None else self.common_support * self.signal_variance,
         )
 

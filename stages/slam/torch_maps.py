@@ -97,12 +97,18 @@ class TorchBasis:
         return torch.einsum("kqa,kab,kqb->kq", a.to(theta.dtype), T, b.to(theta.dtype))
 
 
-def _log_sigmoid_pair(mean: torch.Tensor, var: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-    """``log o`` and ``log (1 - o)`` with ``o`` of eq. 28, in float64."""
+def _log_sigmoid_pair(mean: torch.Tensor, var: torch.Tensor | None, outlier: float = 0.0
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``log o`` and ``log (1 - o)`` with ``o`` of eq. 28, in float64 (``outlier``: as
+    :func:`rbpf.log_occupancy_terms`)."""
     x = mean.to(torch.float64)
     if var is not None:
         x = x / torch.sqrt(1.0 + (torch.pi / 8.0) * var.to(torch.float64))
-    return torch.nn.functional.logsigmoid(x), torch.nn.functional.logsigmoid(-x)
+    lo, lf = torch.nn.functional.logsigmoid(x), torch.nn.functional.logsigmoid(-x)
+    if outlier <= 0:
+        return lo, lf
+    a, b = float(np.log1p(-outlier)), float(np.log(0.5 * outlier))
+    return torch.logaddexp(a + lo, torch.full_like(lo, b)), torch.logaddexp(a + lf, torch.full_like(lf, b))
 
 
 class TorchHilbertMaps:
@@ -215,7 +221,7 @@ class TorchHilbertMaps:
             theta, mean, var_rows = self._covariance(lo, hi, phi, rows, labels)
         # -- weights (eq. 22-30), against the maps before this scan's update
         var = None if var_rows is None else var_rows[0][:, :N]
-        log_o, log_free = _log_sigmoid_pair(mean, var)
+        log_o, log_free = _log_sigmoid_pair(mean, var, w.outlier)
         total = w.free_weight * log_free[:, free].sum(dim=1)
         if not et:
             return w.exponent * (total + log_o[:, ends].sum(dim=1))
@@ -224,7 +230,7 @@ class TorchHilbertMaps:
         var_q = None
         if var_rows is not None:
             var_q = self._ring_variance(var_rows, ends, N, K)
-        log_q, _ = _log_sigmoid_pair(mean_q, var_q)
+        log_q, _ = _log_sigmoid_pair(mean_q, var_q, w.outlier)
         best = torch.maximum(log_q.amax(dim=2), log_o[:, ends])
         return w.exponent * (total + best.sum(dim=1))
 
