@@ -232,10 +232,10 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
     # --estimates: the other trajectory estimates of the same filter run as rows of their own, resumable too
     out3 = tmp_path / "t3_estimates.jsonl"
     args3 = [str(tmp_path / "seq_a"), "--methods", "odometry,fastslam_grid", "--seeds", "0", "--out", str(out3),
-             "--set", "n_particles=4", "--set", "workers=0", "--estimates", "best_per_scan,weighted_mean"]
+             "--set", "n_particles=4", "--set", "workers=0", "--estimates", "best_per_scan,smoothed"]
     assert table3.main(args3) == 0 and table3.main(args3) == 0
     rows3 = [json.loads(line) for line in out3.read_text().splitlines()]
-    other = next(e for e in ("best_per_scan", "weighted_mean") if e != SlamParams().estimate)
+    other = next(e for e in ("best_per_scan", "smoothed") if e != SlamParams().estimate)
     assert [r["method"] for r in rows3] == ["odometry", f"fastslam_grid, {other}", "fastslam_grid"]
     assert json.loads(rows3[1]["config"])["estimate"] == other
     best = next(r for r in rows2 if r["method"] == "fastslam_grid")
