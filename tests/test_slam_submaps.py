@@ -231,3 +231,40 @@ def test_a_closed_submap_weighs_as_its_open_maps_mean_only() -> None:
     closed.select(np.array([2, 2, 0]))
     np.testing.assert_allclose(closed.theta[closed.rows], theta[[2, 2, 0]])
     assert len(closed.theta) == 2
+
+
+def test_grid_share_weighs_a_share_against_each_particles_grid() -> None:
+    """``slam.grid_share = s``: rich_slam's scan log-likelihood is (1 - s) times its Hilbert map's plus s times
+    the FastSLAM grid's that each particle carries beside it, each map updated as when it runs alone; the paper's
+    configuration keeps the Hilbert map alone; bad combinations are one-line errors."""
+    from pydantic import ValidationError
+
+    from stages.slam.grid_map import GridParticleMaps, make_grid_spec
+    from stages.slam.methods import make_hilbert_maps
+    from stages.slam.stage import SlamParams
+    from stages.slam.submaps import HybridParticleMaps
+
+    cfg = SlamParams(grid_share=0.3, workers=0, n_basis=16).config()
+    basis = hm.make_basis([20.0, 20.0], [0.0, 0.0], 16)
+    hyb = make_hilbert_maps(cfg, basis, "rich_slam", 4, "information")
+    assert isinstance(hyb, HybridParticleMaps) and hyb.share == 0.3
+    assert isinstance(make_hilbert_maps(cfg, basis, "rich_slam_paper", 4, "information"), HilbertParticleMaps)
+    glob = make_hilbert_maps(SlamParams(workers=0, n_basis=16).config(), basis, "rich_slam", 4, "information")
+    grid = GridParticleMaps(make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution), 4, cfg.grid,
+                            cfg.grid_likelihood_exponent)
+    rng = np.random.default_rng(6)
+    pose: np.ndarray = np.zeros(3)
+    for _ in range(20):
+        pose = compose(pose, np.array([0.3, 0.0, 0.02]))
+        poses = pose + rng.normal(0.0, [0.05, 0.05, 0.01], (4, 3))
+        s = _scan(rng)
+        g = grid.log_likelihood(poses, s)
+        grid.update(poses, s)
+        expect = 0.7 * glob.weigh_and_update(poses, s) + 0.3 * g
+        got = hyb.weigh_and_update(poses, s)
+        np.testing.assert_allclose(got, expect, rtol=1e-10, atol=1e-12)
+    assert np.ptp(g) > 0  # the grid's term tells the particles apart
+    with pytest.raises(ValidationError, match=r"grid_share = 0\.3 runs on the numpy backend with the global map"):
+        SlamParams(grid_share=0.3, backend="torch", methods=["odometry", "rich_slam"])
+    with pytest.raises(ValidationError, match=r"grid_share = 0\.3 runs on the numpy backend with the global map"):
+        SlamParams(grid_share=0.3, map="submaps")

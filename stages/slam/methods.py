@@ -116,6 +116,9 @@ class SlamConfig:
     #: with submaps: the share of each scan's log-likelihood taken against them; the rest against the global
     #: map, which is then kept too (1: submaps alone)
     submap_share: float = 1.0
+    #: the share of each scan's log-likelihood that the Hilbert methods take from a FastSLAM occupancy grid that
+    #: every particle carries beside its global Hilbert map (0: none, the paper; ``rich_slam_paper`` always)
+    grid_share: float = 0.0
 
     def for_method(self, method: str) -> SlamConfig:
         """The configuration a method runs with: ``rich_slam_paper`` (:data:`PAPER_METHODS`) is the paper's
@@ -127,7 +130,8 @@ class SlamConfig:
         if method not in PAPER_METHODS:
             return self
         return replace(self, proposal="gmapping", yaw_bias=None, estimate="best_per_scan", likelihood_exponent=1.0,
-                       submaps=None, support_variance=None, resample_keep_mean=False, outlier=0.0)
+                       submaps=None, support_variance=None, resample_keep_mean=False, outlier=0.0,
+                       grid_share=0.0)
 
     def map_model(self, method: str, form: Literal["information", "covariance"] = "information") -> MapModel:
         """The particle maps' parameter object of a Hilbert method (every backend takes it)."""
@@ -236,6 +240,12 @@ def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_pa
     set, or both (``cfg.submap_share < 1``); each map in ``workers`` processes when ``workers > 0``."""
     factory: Callable[..., HilbertParticleMaps | ParallelHilbertMaps] = (
         partial(ParallelHilbertMaps, workers=cfg.workers) if cfg.workers > 0 else HilbertParticleMaps)
+    if cfg.grid_share > 0 and method not in (*PAPER_METHODS, *REFINED_METHODS):
+        if cfg.submaps is not None:
+            raise ValueError("slam.grid_share takes the global Hilbert map: set slam.map = global")
+        grid = GridParticleMaps(make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution), n_particles,
+                                cfg.grid, cfg.grid_likelihood_exponent)
+        return HybridParticleMaps(factory(basis, n_particles, cfg.map_model(method, form)), grid, cfg.grid_share)
     if cfg.submaps is None:
         return factory(basis, n_particles, cfg.map_model(method, form))
     model = replace(cfg.map_model(method, form), lengthscale=cfg.submap_lengthscale_m)

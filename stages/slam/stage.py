@@ -123,6 +123,10 @@ class SlamParams(StageParams):
         " rich_slam_paper: always 1)")
     grid_likelihood_exponent: float = Field(1.0, gt=0, description="fastslam_grid: exponent on its scan likelihood "
                                             "(1 was better on the calibration runs)")
+    grid_share: float = Field(0.0, ge=0, lt=1, description="share of each scan's log-likelihood that rich_slam takes "
+                              "from a FastSLAM occupancy grid each particle carries beside its Hilbert map (the "
+                              "detail M basis functions cannot hold on a large domain); 0: the paper's Hilbert "
+                              "weight alone (rich_slam_paper always)")
     outlier: float = Field(0.0, ge=0, lt=1, description="probability that a radar sample is not explained by the "
                            "map (clutter, multipath): it then scores 1/2 whatever the map says, so no sample can "
                            "outweigh the scan (the grid's z_rand); 0: the paper's eq. 28 (rich_slam_paper always)")
@@ -233,6 +237,9 @@ class SlamParams(StageParams):
                              "slam.backend = numpy or leave endpoint_noise_variance unset")
         if self.backend == "numpy" and self.device == "cuda":
             raise ValueError("device = cuda needs backend = torch (the numpy backend runs on the cpu)")
+        if self.grid_share > 0 and (self.backend != "numpy" or self.map != "global"):
+            raise ValueError(f"slam.grid_share = {self.grid_share} runs on the numpy backend with the global map: set "
+                             "slam.backend = numpy and slam.map = global, or grid_share = 0")
         if self.common_support is not None and (self.workers > 0 or self.backend != "numpy"):
             raise ValueError("common_support compares every particle's samples in one process: set slam.workers = 0 "
                              "and slam.backend = numpy, or leave common_support unset")
@@ -272,7 +279,7 @@ class SlamParams(StageParams):
                 noise_variance=self.noise_variance,
                 endpoint_noise_variance=self.endpoint_noise_variance),
             free_weight=self.free_weight, endpoint_noise_variance=self.endpoint_noise_variance,
-            outlier=self.outlier,
+            outlier=self.outlier, grid_share=self.grid_share,
             support_variance=None if self.common_support is None else self.common_support * self.signal_variance,
         )
 

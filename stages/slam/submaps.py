@@ -250,16 +250,17 @@ class SubmapParticleMaps:
 @dataclass
 class HybridParticleMaps:
     """``ParticleMaps`` that weigh every scan against both the global map (``whole``: the paper's, which can
-    close loops) and the local submaps (``local``: the detail the global basis cannot hold), each log-likelihood
-    taken with ``share`` of the scan (``share`` on the submaps', ``1 - share`` on the global's), and update both."""
+    close loops) and a second map of the same particles with the detail the global basis cannot hold
+    (``local``: the local submaps, or the FastSLAM occupancy grid), each log-likelihood taken with ``share`` of
+    the scan (``share`` on the second's, ``1 - share`` on the global's), and update both."""
 
     whole: Any
-    local: SubmapParticleMaps
+    local: Any
     share: float = 0.5
 
     def weigh_and_update(self, poses: F64, samples: BeamSamples) -> F64:
         g = weigh_and_update(self.whole, poses, samples)
-        s = self.local.weigh_and_update(poses, samples)
+        s = weigh_and_update(self.local, poses, samples)
         return np.asarray((1.0 - self.share) * g + self.share * s)
 
     def log_likelihood(self, poses: F64, samples: BeamSamples) -> F64:
@@ -274,7 +275,7 @@ class HybridParticleMaps:
         self.local.select(indices)
 
     def close(self) -> None:
-        close = getattr(self.whole, "close", None)
-        if close is not None:
-            close()
-        self.local.close()
+        for part in (self.whole, self.local):
+            close = getattr(part, "close", None)
+            if close is not None:
+                close()
