@@ -23,6 +23,17 @@ def _scan(rng: np.random.Generator, n: int = 10, max_range: float = 5.0) -> Beam
     return sample_beams(np.column_stack([r * np.cos(a), r * np.sin(a)]), np.zeros(2), 1.0, max_range)
 
 
+def _walk(seed: int, steps: int) -> list[tuple[np.ndarray, BeamSamples]]:
+    """Four particles' poses scattered about a robot driving a gentle arc, and a random scan at each step."""
+    rng = np.random.default_rng(seed)
+    pose: np.ndarray = np.zeros(3)
+    out = []
+    for _ in range(steps):
+        pose = compose(pose, np.array([0.3, 0.0, 0.02]))
+        out.append((pose + rng.normal(0.0, [0.05, 0.05, 0.01], (4, 3)), _scan(rng)))
+    return out
+
+
 def test_submaps_follow_the_robot_and_hold_every_sample_they_take() -> None:
     """Along a 40 m path every scan inserted into a submap lies inside its domain (the window rule), at most
     ``max_open`` are open, one is opened about every half window, and the weight comes from a submap with data."""
@@ -175,12 +186,7 @@ def test_hybrid_maps_weigh_half_against_each_and_the_stage_builds_them() -> None
     glob = make_hilbert_maps(SlamParams(workers=0, n_basis=16).config(), basis, "rich_slam", 4, "information")
     local = make_hilbert_maps(SlamParams(map="submaps", workers=0, submap_n_basis=16).config(), basis, "rich_slam", 4,
                               "information")
-    rng = np.random.default_rng(5)
-    pose: np.ndarray = np.zeros(3)
-    for _ in range(30):
-        pose = compose(pose, np.array([0.3, 0.0, 0.02]))
-        poses = pose + rng.normal(0.0, [0.05, 0.05, 0.01], (4, 3))
-        s = _scan(rng)
+    for poses, s in _walk(5, 30):
         expect = 0.5 * glob.weigh_and_update(poses, s) + 0.5 * local.weigh_and_update(poses, s)
         np.testing.assert_allclose(hyb.weigh_and_update(poses, s), expect, rtol=1e-10, atol=1e-12)
 
@@ -252,12 +258,7 @@ def test_grid_share_weighs_a_share_against_each_particles_grid() -> None:
     glob = make_hilbert_maps(SlamParams(workers=0, n_basis=16).config(), basis, "rich_slam", 4, "information")
     grid = GridParticleMaps(make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution), 4, cfg.grid,
                             cfg.grid_likelihood_exponent)
-    rng = np.random.default_rng(6)
-    pose: np.ndarray = np.zeros(3)
-    for _ in range(20):
-        pose = compose(pose, np.array([0.3, 0.0, 0.02]))
-        poses = pose + rng.normal(0.0, [0.05, 0.05, 0.01], (4, 3))
-        s = _scan(rng)
+    for poses, s in _walk(6, 20):
         g = grid.log_likelihood(poses, s)
         grid.update(poses, s)
         expect = 0.7 * glob.weigh_and_update(poses, s) + 0.3 * g
