@@ -135,12 +135,16 @@ UNION_RULE = ("union iff on the validation scenes mean CD-l2 (union) < mean CD-l
               "paper-exact F (union) >= mean F (model alone) - 0.01")
 
 
+def _passes_union_rule(union: dict[str, float], alone: dict[str, float]) -> bool:
+    """:data:`UNION_RULE`'s test of one union's Overall row against the model alone's."""
+    return bool(union["cd_l2"] < alone["cd_l2"] and union["fscore_0.15"] >= alone["fscore_0.15"] - 0.01)
+
+
 def decide_union(table: dict[str, Any]) -> bool:
     """:data:`UNION_RULE` on a validation table of :func:`run_table`."""
     if table["split"] != "val":
         raise ValueError("the union is decided on the validation scenes only")
-    alone, union = table["overall"]["voxel"], table["overall"]["voxel + prefiltered radar"]
-    return bool(union["cd_l2"] < alone["cd_l2"] and union["fscore_0.15"] >= alone["fscore_0.15"] - 0.01)
+    return _passes_union_rule(table["overall"]["voxel + prefiltered radar"], table["overall"]["voxel"])
 
 
 def write_union(checkpoint: Path, table: dict[str, Any]) -> bool:
@@ -179,7 +183,7 @@ def decide_gate(table: dict[str, Any], threshold: float) -> float | None:
         row = table["overall"].get(gate_row(g))
         if row is None:
             raise ValueError(f"the validation table has no row for gate {g:.2f}; run it with every gate")
-        if row["cd_l2"] < alone["cd_l2"] and row["fscore_0.15"] >= alone["fscore_0.15"] - 0.01:
+        if _passes_union_rule(row, alone):
             return g
     return None
 

@@ -21,7 +21,7 @@ from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, stencil_offsets, to_world
 from stages.slam.particle_linalg import StackedCovariance, StackedInformation
 from stages.slam.pose_refinement import PoseRefinement, log_gaussian, refine, sample_proposal
-from stages.slam.se2 import compose, wrap_angle  # noqa: F401  (wrap_angle: re-exported for the slam modules)
+from stages.slam.se2 import compose, wrap_angle
 
 Resampling = Literal["systematic", "stratified", "multinomial"]
 F64 = npt.NDArray[np.floating[Any]]
@@ -793,7 +793,7 @@ def restore_mean(resampled: F64, target: F64) -> tuple[F64, F64]:
     p = np.asarray(resampled, dtype=np.float64).reshape(-1, 3)
     now = weighted_mean_pose(p, np.full(len(p), 1.0 / len(p)))
     d = np.asarray(target, dtype=np.float64) - now
-    d[2] = (d[2] + np.pi) % (2 * np.pi) - np.pi
+    d[2] = wrap_angle(d[2])
     return p + d, d
 
 
@@ -942,9 +942,10 @@ class RBPF:
         self._parents = np.arange(self.n_particles)
         if resampled:
             idx = self.resampler(w, self.rng)
-            shifted, shift = restore_mean(self.poses[idx], self.history.mean_pose[-1])
+            survivors = self.poses[idx]
+            shifted, shift = restore_mean(survivors, self.history.mean_pose[-1])
             self.history.resample_shift.append(-shift)
-            self.poses = shifted if self.keep_mean else self.poses[idx]
+            self.poses = shifted if self.keep_mean else survivors
             self.maps.select(idx)
             self.proposal.select(idx)
             self.logw = np.full(self.n_particles, -np.log(self.n_particles))

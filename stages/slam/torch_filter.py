@@ -47,6 +47,12 @@ def wrap_angle_t(a: torch.Tensor) -> torch.Tensor:
     return -(torch.remainder(-a + torch.pi, 2 * torch.pi) - torch.pi)
 
 
+def weighted_mean_pose_t(poses: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """:func:`rbpf.weighted_mean_pose` of poses ``(Np, 3)`` with weights ``(Np,)``, on the device."""
+    yaw = poses[:, 2]
+    return torch.stack([w @ poses[:, 0], w @ poses[:, 1], torch.atan2(w @ torch.sin(yaw), w @ torch.cos(yaw))])
+
+
 def compose_t(x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """``x (+) d`` for poses ``(Np, 3)`` and body-frame increments ``(Np, 3)``."""
     c, s = torch.cos(x[:, 2]), torch.sin(x[:, 2])
@@ -127,9 +133,7 @@ class TorchRBPF:
         self.logw = torch.log(torch.clamp_min(w, self._tiny))
         best_t = torch.argmax(w)
         n_eff_t = w.sum() ** 2 / torch.sum(w * w)
-        yaw = self.poses[:, 2]
-        mean_t = torch.stack([w @ self.poses[:, 0], w @ self.poses[:, 1],
-                              torch.atan2(w @ torch.sin(yaw), w @ torch.cos(yaw))])  # rbpf.weighted_mean_pose
+        mean_t = weighted_mean_pose_t(self.poses, w)
         stats = torch.cat([n_eff_t[None], best_t[None].to(torch.float64), self.poses[best_t],
                            self.maps.check()[None].to(torch.float64), mean_t]).cpu().numpy()  # the one sync per scan
         if stats[5] != 0:
@@ -153,13 +157,10 @@ class TorchRBPF:
             pos = torch.as_tensor(resample_positions(self.resampling, self.n_particles, self.rng), device=self.device)
             idx = search_t(w, pos)
             self.poses = self.poses[idx]
-            if self.keep_mean:
-                p = self.poses
-                now = torch.stack([p[:, 0].mean(), p[:, 1].mean(),
-                                   torch.atan2(torch.sin(p[:, 2]).mean(), torch.cos(p[:, 2]).mean())])
-                d = mean_t - now
-                d[2] = torch.remainder(d[2] + np.pi, 2 * np.pi) - np.pi
-                self.poses = p + d
+            if self.keep_mean:  # rbpf.restore_mean
+                d = mean_t - weighted_mean_pose_t(self.poses, torch.full_like(w, 1.0 / self.n_particles))
+                d[2] = wrap_angle_t(d[2])
+                self.poses = self.poses + d
             self.maps.select(idx)
             if self.proposal.bias is not None:
                 self.proposal.select(idx.cpu().numpy())
