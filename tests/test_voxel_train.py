@@ -13,6 +13,7 @@ from stages.complete.train_voxel import (  # noqa: E402
     SceneData,
     VoxelTrainConfig,
     augment,
+    coverage_loss,
     loss_fn,
     lr_at,
     make_crop,
@@ -53,6 +54,48 @@ def test_loss_prefers_the_truth_and_ignores_unmasked_voxels() -> None:
     noisy = good.clone()
     noisy[0, 6:] = 10.0  # outside the mask: no effect
     assert torch.isclose(loss_fn(noisy, lab, mask, 2.0, 1.0), loss_fn(good, lab, mask, 2.0, 1.0))
+
+
+def _brute_coverage(logits: np.ndarray, label: np.ndarray, mask: np.ndarray, cell: int, pos_weight: float) -> float:
+    """The coverage term of one cell size by loops over the cells (the reference)."""
+    total, n = 0.0, 0
+    nx, ny, nz = label.shape
+    for i in range(0, nx, cell):
+        for j in range(0, ny, cell):
+            for k in range(0, nz, cell):
+                sl = (slice(i, i + cell), slice(j, j + cell), slice(k, k + cell))
+                m = mask[sl] > 0
+                if not m.any():
+                    continue
+                z = float(logits[sl][m].max())
+                y = float((label[sl][m] > 0).any())
+                w = 1.0 + (pos_weight - 1.0) * y
+                total += w * (max(z, 0) - z * y + np.log1p(np.exp(-abs(z))))
+                n += 1
+    return total / n
+
+
+def test_coverage_term_equals_a_loop_over_cells_and_forgives_a_voxel_off_by_one() -> None:
+    rng = np.random.default_rng(1)
+    lab = (rng.random((1, 10, 12, 7)) < 0.05).astype(np.float32)  # sides not multiples of the cells
+    mask = (rng.random(lab.shape) < 0.8).astype(np.float32)
+    logits = rng.normal(0, 3, lab.shape).astype(np.float32)
+    got = coverage_loss(torch.from_numpy(logits), torch.from_numpy(lab), torch.from_numpy(mask), (4, 8), 2.0)
+    want = np.mean([_brute_coverage(logits[0], lab[0], mask[0], c, 2.0) for c in (4, 8)])
+    assert float(got) == pytest.approx(want, rel=1e-5)
+    # a wall predicted one voxel off costs the voxel loss dearly and the coverage term nothing
+    lab2 = torch.zeros(1, 16, 16, 8)
+    lab2[0, 5, 5, 3] = 1
+    ones = torch.ones_like(lab2)
+    off = torch.full_like(lab2, -10.0)
+    off[0, 6, 5, 3] = 10.0
+    none = torch.full_like(lab2, -10.0)
+    assert float(coverage_loss(off, lab2, ones, (4,), 2.0)) < 1e-3 < float(coverage_loss(none, lab2, ones, (4,), 2.0))
+    assert float(loss_fn(off, lab2, ones, 2.0, 1.0)) > float(loss_fn(none, lab2, ones, 2.0, 1.0))
+    # the weight adds it to the loss
+    both = loss_fn(none, lab2, ones, 2.0, 1.0, coverage_weight=0.5, coverage_cells=(4,))
+    assert float(both) == pytest.approx(float(loss_fn(none, lab2, ones, 2.0, 1.0))
+                                        + 0.5 * float(coverage_loss(none, lab2, ones, (4,), 2.0)), rel=1e-6)
 
 
 def test_lr_follows_a_cosine_over_the_time_budget() -> None:
