@@ -172,4 +172,9 @@ def test_shipped_voxel_checkpoint_loads_with_its_validation_choices() -> None:
     _model, meta = load_voxel_checkpoint(path)
     assert meta.resolution == RES and 0 < meta.threshold < 1 and meta.union_radar
     assert not set(meta.train["val_scenes"]) & set(meta.train["train_scenes"])
-    assert meta.train["union_decision"]["val_scenes"] == meta.train["val_scenes"]
+    # the union (and its gate) was decided on the validation scenes by the gate rule, which the checkpoint records
+    gate = meta.train["gate_decision"]
+    assert gate["val_scenes"] == meta.train["val_scenes"]
+    assert gate["gate"] == meta.union_gate
+    united = gate["overall"][f"voxel + prefiltered radar, gate {meta.union_gate:.2f}"]
+    assert united["cd_l2"] < gate["overall"]["voxel"]["cd_l2"]
