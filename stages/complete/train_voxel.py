@@ -184,6 +184,13 @@ def validation_crops(scenes: list[SceneData], cfg: VoxelTrainConfig, band: Band,
     return out
 
 
+def _masked_bce(logits: torch.Tensor, label: torch.Tensor, mask: torch.Tensor, pos_weight: float) -> torch.Tensor:
+    """BCE with occupied voxels weighted ``pos_weight``, summed over ``mask`` and divided by its size."""
+    w = mask * (1.0 + (pos_weight - 1.0) * label)
+    bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, label, weight=w, reduction="sum")
+    return bce / mask.sum().clamp(min=1.0)
+
+
 def coverage_loss(logits: torch.Tensor, label: torch.Tensor, mask: torch.Tensor, cells: tuple[int, ...],
                   pos_weight: float) -> torch.Tensor:
     """Mean over ``cells`` of the weighted BCE between each cell's highest logit (over its loss voxels) and
@@ -198,12 +205,8 @@ def coverage_loss(logits: torch.Tensor, label: torch.Tensor, mask: torch.Tensor,
     m = mask.unsqueeze(1)
     total = logits.new_zeros(())
     for c in cells:
-        xm = torch.nn.functional.max_pool3d(x, c, c, ceil_mode=True)
-        ym = torch.nn.functional.max_pool3d(y, c, c, ceil_mode=True)
-        mm = torch.nn.functional.max_pool3d(m, c, c, ceil_mode=True)
-        w = mm * (1.0 + (pos_weight - 1.0) * ym)
-        bce = torch.nn.functional.binary_cross_entropy_with_logits(xm, ym, weight=w, reduction="sum")
-        total = total + bce / mm.sum().clamp(min=1.0)
+        xm, ym, mm = (torch.nn.functional.max_pool3d(a, c, c, ceil_mode=True) for a in (x, y, m))
+        total = total + _masked_bce(xm, ym, mm, pos_weight)
     return total / max(len(cells), 1)
 
 
@@ -212,9 +215,7 @@ def loss_fn(logits: torch.Tensor, label: torch.Tensor, mask: torch.Tensor, pos_w
             ) -> torch.Tensor:
     """Weighted BCE (mean over the loss voxels) + ``dice_weight`` * (1 - soft Dice) over the loss voxels
     (+ ``coverage_weight`` * :func:`coverage_loss`)."""
-    w = mask * (1.0 + (pos_weight - 1.0) * label)
-    bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, label, weight=w, reduction="sum")
-    bce = bce / mask.sum().clamp(min=1.0)
+    bce = _masked_bce(logits, label, mask, pos_weight)
     p = torch.sigmoid(logits) * mask
     inter = (p * label).sum()
     dice = 1.0 - (2.0 * inter + 1.0) / (p.sum() + (label * mask).sum() + 1.0)
