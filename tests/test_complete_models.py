@@ -190,3 +190,21 @@ def test_top_views_show_both_models(runs: dict[str, Any], tmp_path: Path) -> Non
     np.testing.assert_array_equal(maps["completed_map_voxel"], _xyz(runs["voxel"] / "completed_map.parquet"))
     fig = plot_run_top_views(tmp_path / "runs", tmp_path / "top.png", ("rmap_arpg_lab_run0",))
     assert fig is not None and fig.stat().st_size > 10_000
+
+
+@pytest.mark.parametrize(("kind", "model"), [("rmap", "voxel"), ("coloradar", "voxel"), ("source", "voxel"),
+                                             ("simulated", "uppointr")])
+def test_real_data_completes_with_the_voxel_model_by_default(tmp_path: Path, kind: str, model: str) -> None:
+    """The sequence kind's defaults (``sources.DEFAULT_PARAMS``) pick the completion model: the voxel U-Net on
+    real data, UpPoinTr on simulated sequences; ``--set`` still overrides them."""
+    from pipeline.config import Workflow
+    from pipeline.registry import load_stages
+    from pipeline.runner import Runner
+
+    seq = SequenceInfo(name=f"{kind}_toy", kind=kind, source=Path("/nonexistent"),
+                       scene="arpg_lab_run0" if kind == "rmap" else None)
+    reg = load_stages()
+    wf = Workflow("t", ["complete"])
+    assert Runner(seq, tmp_path, reg, wf).params("complete").model == model  # type: ignore[attr-defined]
+    override = Runner(seq, tmp_path, reg, wf, {"complete": {"model": "uppointr"}})
+    assert override.params("complete").model == "uppointr"  # type: ignore[attr-defined]
