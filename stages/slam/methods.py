@@ -42,6 +42,8 @@ METHODS: tuple[Method, ...] = ("odometry", "fastslam_grid", "rich_slam", "rich_s
 HILBERT_METHODS = ("rich_slam", "rich_slam_no_et", "rich_slam_mean_only", "rich_slam_refined", "rich_slam_paper")
 #: the paper's configuration (Sec. IV): the fixed GMapping-form proposal, no bias state, one global map
 PAPER_METHODS = ("rich_slam_paper",)
+#: the paper's endpoint tolerance radius r_e (m, Sec. IV-D2: "we set r_e = 0.25 m"), which ``rich_slam_paper`` keeps
+PAPER_ENDPOINT_TOLERANCE = 0.25
 #: how a filter's trajectory is read from its particles (``SlamConfig.estimate``)
 Estimate = Literal["best_per_scan", "final_best_history", "weighted_mean", "smoothed"]
 ESTIMATES: tuple[Estimate, ...] = ("best_per_scan", "final_best_history", "weighted_mean", "smoothed")
@@ -142,7 +144,8 @@ class SlamConfig:
     def weighting(self, method: str) -> HilbertWeighting:
         return HilbertWeighting(
             use_variance=method != "rich_slam_mean_only",
-            endpoint_tolerance=0.0 if method == "rich_slam_no_et" else self.endpoint_tolerance,
+            endpoint_tolerance=(0.0 if method == "rich_slam_no_et" else PAPER_ENDPOINT_TOLERANCE
+                                if method in PAPER_METHODS else self.endpoint_tolerance),
             ring_points=self.et_ring_points,
             rings=self.et_rings,
             et_variance=self.et_variance,

@@ -111,7 +111,10 @@ class SlamParams(StageParams):
     z_min: float | None = Field(None, description="keep points with base-frame z >= z_min (m); None: no gate")
     z_max: float | None = Field(None, description="keep points with base-frame z <= z_max (m); None: no gate")
     # -- weights (Sec. IV-D2)
-    endpoint_tolerance: float = Field(0.25, ge=0, description="endpoint tolerance radius r_e (m, eq. 29)")
+    endpoint_tolerance: float = Field(
+        0.0, ge=0, description="endpoint tolerance radius r_e (m, eq. 29; the paper: 0.25); 0 = off, chosen on the "
+        "calibration runs (stop 39, stages/slam/README.md); rich_slam_paper always takes the paper's 0.25 and "
+        "rich_slam_no_et always 0")
     et_ring_points: int = Field(8, ge=1, description="points on each ring of the discretised r_e disc")
     et_rings: int = Field(1, ge=1, description="rings of the discretised r_e disc")
     et_variance: Literal["exact", "taylor"] = Field(
