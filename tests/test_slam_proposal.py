@@ -131,6 +131,10 @@ def test_the_paper_configuration_keeps_eq22_and_the_grid_its_own_exponent() -> N
     assert paper.weighting("rich_slam_paper").exponent == 1.0
     assert paper.map_model("rich_slam_paper").weighting.exponent == 1.0
     assert (paper.proposal, paper.estimate, paper.yaw_bias) == ("gmapping", "best_per_scan", None)
+    # r_e: off by default for rich_slam (stop 39), the paper's 0.25 m for rich_slam_paper, 0 for the ablation
+    assert cfg.weighting("rich_slam").endpoint_tolerance == 0.0
+    assert paper.weighting("rich_slam_paper").endpoint_tolerance == 0.25
+    assert cfg.weighting("rich_slam_no_et").endpoint_tolerance == 0.0
     assert cfg.for_method("rich_slam") is cfg
     assert cfg.grid_likelihood_exponent == SlamParams().grid_likelihood_exponent
     # the stage's defaults are the calibrated ones, SlamConfig's pure defaults the paper's

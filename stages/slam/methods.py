@@ -125,15 +125,15 @@ class SlamConfig:
     def for_method(self, method: str) -> SlamConfig:
         """The configuration a method runs with: ``rich_slam_paper`` (:data:`PAPER_METHODS`) is the paper's
         whatever the settings (the GMapping proposal, no bias state, Algorithm 1's largest-weight particle,
-        eq. 22 with exponent 1, one global map); ``rich_slam_refined`` always has the global map; every other
-        method runs with this one."""
+        eq. 22 with exponent 1, r_e = 0.25 m, one global map); ``rich_slam_refined`` always has the global map;
+        every other method runs with this one."""
         if method in REFINED_METHODS:
             return replace(self, submaps=None)  # the refinement works on one basis: the global map
         if method not in PAPER_METHODS:
             return self
         return replace(self, proposal="gmapping", yaw_bias=None, estimate="best_per_scan", likelihood_exponent=1.0,
                        submaps=None, support_variance=None, resample_keep_mean=False, outlier=0.0,
-                       grid_share=0.0)
+                       grid_share=0.0, endpoint_tolerance=PAPER_ENDPOINT_TOLERANCE)
 
     def map_model(self, method: str, form: Literal["information", "covariance"] = "information") -> MapModel:
         """The particle maps' parameter object of a Hilbert method (every backend takes it)."""
@@ -144,8 +144,7 @@ class SlamConfig:
     def weighting(self, method: str) -> HilbertWeighting:
         return HilbertWeighting(
             use_variance=method != "rich_slam_mean_only",
-            endpoint_tolerance=(0.0 if method == "rich_slam_no_et" else PAPER_ENDPOINT_TOLERANCE
-                                if method in PAPER_METHODS else self.endpoint_tolerance),
+            endpoint_tolerance=0.0 if method == "rich_slam_no_et" else self.endpoint_tolerance,
             ring_points=self.et_ring_points,
             rings=self.et_rings,
             et_variance=self.et_variance,
