@@ -272,9 +272,12 @@ def run_method(
     observer: Observer | None = None,
     on_step: Callable[[], None] | None = None,
     motion: OdometryMotion | None = None,
+    wrap_maps: Callable[[Any], Any] | None = None,
 ) -> MethodResult:
     """Run one method over the scans; ``odometry (T, 3)`` are world <- base poses at the scan times, ``motion``
-    their increment covariance and intervals (needed by ``proposal = odometry_covariance`` and the bias state)."""
+    their increment covariance and intervals (needed by ``proposal = odometry_covariance`` and the bias state).
+    ``wrap_maps``: applied to the particle maps before the filter starts (numpy backend; diagnostics such as
+    :mod:`weight_pull` wrap them to record shadow weights)."""
     t0 = time.perf_counter()
     cfg = cfg.for_method(method)
     odometry = np.asarray(odometry, dtype=np.float64).reshape(-1, 3)
@@ -304,6 +307,8 @@ def run_method(
             maps = make_hilbert_maps(cfg, basis, method, cfg.n_particles, form)
     else:
         raise ValueError(f"unknown method {method!r}; one of {', '.join(METHODS)}")
+    if wrap_maps is not None and maps is not None:
+        maps = wrap_maps(maps)
     best_map: dict[str, F64] = {}
 
     def keep_best(i: int, f: Any, best: int) -> None:
@@ -324,8 +329,9 @@ def run_method(
                      keep_mean=cfg.resample_keep_mean)
             h = f.run(odometry_increments(odometry), scans, observer=keep_best, on_step=on_step)
         finally:
-            if isinstance(maps, ParallelHilbertMaps | SubmapParticleMaps | HybridParticleMaps):
-                maps.close()
+            close = getattr(maps, "close", None)
+            if close is not None:
+                close()
     estimates = {"best_per_scan": h.best_trajectory(), "final_best_history": h.final_best_history(),
                  "weighted_mean": h.mean_trajectory(), "smoothed": h.smoothed_trajectory()}
     poses = estimates[cfg.estimate]
