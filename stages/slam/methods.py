@@ -18,6 +18,7 @@ import numpy.typing as npt
 from stages.slam import hilbert_map as hm
 from stages.slam.backend import Backend, Device, resolve_device
 from stages.slam.beam_sampling import BeamSamples, to_world
+from stages.slam.delayed_maps import DelayedMaps
 from stages.slam.grid_map import GridModel, GridParticleMaps, make_grid_spec
 from stages.slam.parallel import ParallelHilbertMaps, submap_factory
 from stages.slam.pose_refinement import PoseRefinement
@@ -121,6 +122,8 @@ class SlamConfig:
     #: the share of each scan's log-likelihood that the Hilbert methods take from a FastSLAM occupancy grid that
     #: every particle carries beside its global Hilbert map (0: none, the paper; ``rich_slam_paper`` always)
     grid_share: float = 0.0
+    #: weigh each scan against the map without its last ``map_delay`` scans (:mod:`delayed_maps`; 0: off)
+    map_delay: int = 0
 
     def for_method(self, method: str) -> SlamConfig:
         """The configuration a method runs with: ``rich_slam_paper`` (:data:`PAPER_METHODS`) is the paper's
@@ -133,7 +136,7 @@ class SlamConfig:
             return self
         return replace(self, proposal="gmapping", yaw_bias=None, estimate="best_per_scan", likelihood_exponent=1.0,
                        submaps=None, support_variance=None, resample_keep_mean=False, outlier=0.0,
-                       grid_share=0.0, endpoint_tolerance=PAPER_ENDPOINT_TOLERANCE)
+                       grid_share=0.0, map_delay=0, endpoint_tolerance=PAPER_ENDPOINT_TOLERANCE)
 
     def map_model(self, method: str, form: Literal["information", "covariance"] = "information") -> MapModel:
         """The particle maps' parameter object of a Hilbert method (every backend takes it)."""
@@ -237,7 +240,8 @@ def choose_form(cfg: SlamConfig, method: str, scans: Sequence[BeamSamples], M: i
 
 def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_particles: int,
                       form: Literal["information", "covariance"] = "information",
-                      ) -> HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps | HybridParticleMaps:
+                      ) -> (HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps | HybridParticleMaps
+                            | DelayedMaps):
     """The particle maps of a Hilbert method: one global map over ``basis``, local submaps when ``cfg.submaps`` is
     set, or both (``cfg.submap_share < 1``); each map in ``workers`` processes when ``workers > 0``."""
     factory: Callable[..., HilbertParticleMaps | ParallelHilbertMaps] = (
@@ -249,7 +253,8 @@ def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_pa
                                 cfg.grid, cfg.grid_likelihood_exponent)
         return HybridParticleMaps(factory(basis, n_particles, cfg.map_model(method, form)), grid, cfg.grid_share)
     if cfg.submaps is None:
-        return factory(basis, n_particles, cfg.map_model(method, form))
+        maps = factory(basis, n_particles, cfg.map_model(method, form))
+        return DelayedMaps(maps, cfg.map_delay) if cfg.map_delay > 0 and method not in PAPER_METHODS else maps
     model = replace(cfg.map_model(method, form), lengthscale=cfg.submap_lengthscale_m)
     local = (SubmapParticleMaps(cfg.submaps, submap_factory(n_particles, model, cfg.workers), cfg.basis_kind,
                                 weighting=model.weighting)
@@ -294,7 +299,7 @@ def run_method(
     proposal = make_proposal(method, cfg, motion, rng)
     form: Literal["information", "covariance"] = "information"
     maps: (GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps | HybridParticleMaps
-           | None) = None
+           | DelayedMaps | None) = None
     if method == "fastslam_grid":
         spec = make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution)
         maps = GridParticleMaps(spec, cfg.n_particles, cfg.grid, cfg.grid_likelihood_exponent)

@@ -130,6 +130,9 @@ class SlamParams(StageParams):
                               "from a FastSLAM occupancy grid each particle carries beside its Hilbert map (the "
                               "detail M basis functions cannot hold on a large domain); 0: the paper's Hilbert "
                               "weight alone (rich_slam_paper always)")
+    map_delay: int = Field(0, ge=0, description="rich_slam: weigh each scan against the particle's map without its "
+                           "last map_delay scans, which agree with the particle's heading right or wrong "
+                           "(stages/slam/delayed_maps.py); 0: the paper's map of every earlier scan")
     outlier: float = Field(0.0, ge=0, lt=1, description="probability that a radar sample is not explained by the "
                            "map (clutter, multipath): it then scores 1/2 whatever the map says, so no sample can "
                            "outweigh the scan (the grid's z_rand); 0: the paper's eq. 28 (rich_slam_paper always)")
@@ -240,6 +243,9 @@ class SlamParams(StageParams):
                              "slam.backend = numpy or leave endpoint_noise_variance unset")
         if self.backend == "numpy" and self.device == "cuda":
             raise ValueError("device = cuda needs backend = torch (the numpy backend runs on the cpu)")
+        if self.map_delay > 0 and (self.backend != "numpy" or self.map != "global"):
+            raise ValueError(f"slam.map_delay = {self.map_delay} runs on the numpy backend with the global map: set "
+                             "slam.backend = numpy and slam.map = global, or map_delay = 0")
         if self.grid_share > 0 and (self.backend != "numpy" or self.map != "global"):
             raise ValueError(f"slam.grid_share = {self.grid_share} runs on the numpy backend with the global map: set "
                              "slam.backend = numpy and slam.map = global, or grid_share = 0")
@@ -282,7 +288,7 @@ class SlamParams(StageParams):
                 noise_variance=self.noise_variance,
                 endpoint_noise_variance=self.endpoint_noise_variance),
             free_weight=self.free_weight, endpoint_noise_variance=self.endpoint_noise_variance,
-            outlier=self.outlier, grid_share=self.grid_share,
+            outlier=self.outlier, grid_share=self.grid_share, map_delay=self.map_delay,
             support_variance=None if self.common_support is None else self.common_support * self.signal_variance,
         )
 
