@@ -243,12 +243,11 @@ class SlamParams(StageParams):
                              "slam.backend = numpy or leave endpoint_noise_variance unset")
         if self.backend == "numpy" and self.device == "cuda":
             raise ValueError("device = cuda needs backend = torch (the numpy backend runs on the cpu)")
-        if self.map_delay > 0 and (self.backend != "numpy" or self.map != "global"):
-            raise ValueError(f"slam.map_delay = {self.map_delay} runs on the numpy backend with the global map: set "
-                             "slam.backend = numpy and slam.map = global, or map_delay = 0")
-        if self.grid_share > 0 and (self.backend != "numpy" or self.map != "global"):
-            raise ValueError(f"slam.grid_share = {self.grid_share} runs on the numpy backend with the global map: set "
-                             "slam.backend = numpy and slam.map = global, or grid_share = 0")
+        for name in ("map_delay", "grid_share"):  # options built on the in-process global map
+            value = getattr(self, name)
+            if value > 0 and (self.backend != "numpy" or self.map != "global"):
+                raise ValueError(f"slam.{name} = {value} runs on the numpy backend with the global map: set "
+                                 f"slam.backend = numpy and slam.map = global, or {name} = 0")
         if self.common_support is not None and (self.workers > 0 or self.backend != "numpy"):
             raise ValueError("common_support compares every particle's samples in one process: set slam.workers = 0 "
                              "and slam.backend = numpy, or leave common_support unset")

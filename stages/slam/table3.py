@@ -63,6 +63,18 @@ TITLES = {"whole": "Whole-trajectory SE(2) alignment (= evo_ape --align in the p
           "anchored": "Without alignment (anchored at the ground truth)"}
 
 
+def slam_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """``[slam.]KEY=VALUE`` strings as slam parameter overrides: VALUE as JSON, else the string itself."""
+    overrides: dict[str, Any] = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        try:
+            overrides[key.removeprefix("slam.")] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[key.removeprefix("slam.")] = value
+    return overrides
+
+
 def load_inputs(run_dir: Path, p: SlamParams
                 ) -> tuple[npt.NDArray[np.int64], F64, list[BeamSamples], Truth, OdometryMotion]:
     """Scan times, odometry poses (valid rows, scan order), beam samples, ground truth and the odometry's
@@ -283,13 +295,7 @@ def main(argv: list[str] | None = None) -> int:
             os.replace(tmp, a.figure)
             print(f"wrote {a.figure}")
         return 0
-    overrides: dict[str, Any] = {}
-    for item in a.set:
-        key, _, value = item.partition("=")
-        try:
-            overrides[key.removeprefix("slam.")] = json.loads(value)
-        except json.JSONDecodeError:
-            overrides[key.removeprefix("slam.")] = value
+    overrides = slam_overrides(a.set)
     missing = [r for r in a.runs if not (r / "odometry" / "odometry.parquet").exists()]
     if missing:
         ap.error(f"{missing[0]}: no odometry/odometry.parquet; run `pipeline run odometry --seq "

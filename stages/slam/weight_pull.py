@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -86,7 +85,8 @@ class ShadowedMaps:
 
     def map_of(self, k: int) -> tuple[F64, F64]:
         """Particle k's map of ``main`` (mean and covariance)."""
-        return tuple(self.main.map_of(k))
+        theta, cov = self.main.map_of(k)
+        return theta, cov
 
     def select(self, indices: npt.NDArray[np.int64]) -> None:
         self.main.select(indices)
@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     from stages.slam.grid_map import GridParticleMaps, make_grid_spec
     from stages.slam.methods import domain_from_trajectory, run_method
     from stages.slam.stage import SlamParams
-    from stages.slam.table3 import load_inputs
+    from stages.slam.table3 import load_inputs, slam_overrides
 
     ap = argparse.ArgumentParser(prog="python -m stages.slam.weight_pull", description=(__doc__ or "").split("\n\n")[0])
     ap.add_argument("run", type=Path, help="run folder <runs>/<seq> with ingest/, filter/ and odometry/")
@@ -143,15 +143,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, help="write the table as markdown here")
     ap.add_argument("--npz", type=Path, help="write the per-scan record (errors, log-likelihoods, pulls) here")
     a = ap.parse_args(argv)
-    overrides: dict[str, Any] = {"workers": 0}
-    for kv in a.sets:
-        if "=" not in kv:
-            ap.error(f"--set {kv!r}: expected KEY=VALUE")
-        k, v = kv.split("=", 1)
-        try:
-            overrides[k] = json.loads(v)
-        except json.JSONDecodeError:
-            overrides[k] = v
+    bad = [kv for kv in a.sets if "=" not in kv]
+    if bad:
+        ap.error(f"--set {bad[0]!r}: expected KEY=VALUE")
+    overrides: dict[str, Any] = {"workers": 0, **slam_overrides(a.sets)}
     p = SlamParams(**overrides)
     t_ns, odo, samples, truth, motion = load_inputs(a.run, p)
     half, centre = domain_from_trajectory(odo[:, :2], p.domain_padding)
