@@ -63,6 +63,8 @@ def test_delay_is_wired_for_rich_slam_only_and_checked() -> None:
     assert isinstance(make_hilbert_maps(cfg, BASIS, "rich_slam", 4), DelayedMaps)
     assert isinstance(make_hilbert_maps(cfg.for_method("rich_slam_paper"), BASIS, "rich_slam_paper", 4),
                       HilbertParticleMaps)
+    # the refined method reads the map's means for its Laplace proposal: it keeps the undelayed global map
+    assert cfg.for_method("rich_slam_refined").map_delay == 0
     with pytest.raises(ValueError, match="at least one scan"):
         DelayedMaps(HilbertParticleMaps(BASIS, 4, MODEL), 0)
     with pytest.raises(ValidationError, match="map_delay = 10 runs on the numpy backend"):
@@ -76,6 +78,10 @@ def test_filter_runs_with_a_delay() -> None:
     scans = [sample_beams(p, np.zeros(2), 1.0, 5.0) for p in run.scans]
     motion = OdometryMotion(np.tile(np.diag([0.01, 0.01, 0.005]) ** 2, (n, 1, 1)), np.full(n, 0.1))
     cfg = SlamConfig(n_particles=10, workers=0, proposal="odometry_covariance", map_delay=10)
-    r = run_method("rich_slam", run.odometry, scans, hm.make_basis([15.0, 15.0], [0.0, 0.0], 64), cfg, seed=0,
-                   motion=motion)
+    basis = hm.make_basis([15.0, 15.0], [0.0, 0.0], 64)
+    r = run_method("rich_slam", run.odometry, scans, basis, cfg, seed=0, motion=motion)
     assert r.poses.shape == (n, 3) and np.all(np.isfinite(r.poses)) and r.theta is not None
+    # the other methods of the same run (the slam stage runs them all with one configuration)
+    for method in ("rich_slam_refined", "rich_slam_paper"):
+        other = run_method(method, run.odometry, scans, basis, cfg, seed=0, motion=motion)
+        assert other.poses.shape == (n, 3) and np.all(np.isfinite(other.poses))

@@ -128,10 +128,11 @@ class SlamConfig:
     def for_method(self, method: str) -> SlamConfig:
         """The configuration a method runs with: ``rich_slam_paper`` (:data:`PAPER_METHODS`) is the paper's
         whatever the settings (the GMapping proposal, no bias state, Algorithm 1's largest-weight particle,
-        eq. 22 with exponent 1, r_e = 0.25 m, one global map); ``rich_slam_refined`` always has the global map;
-        every other method runs with this one."""
+        eq. 22 with exponent 1, r_e = 0.25 m, one global map); ``rich_slam_refined`` always has the global map,
+        undelayed; every other method runs with this one."""
         if method in REFINED_METHODS:
-            return replace(self, submaps=None)  # the refinement works on one basis: the global map
+            # the refinement works on one basis, the global map, and reads its means: no submaps, no delayed map
+            return replace(self, submaps=None, map_delay=0)
         if method not in PAPER_METHODS:
             return self
         return replace(self, proposal="gmapping", yaw_bias=None, estimate="best_per_scan", likelihood_exponent=1.0,
