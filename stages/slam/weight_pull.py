@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     def shadow(maps: Any) -> Any:
         if not isinstance(maps, HilbertParticleMaps):
             raise SystemExit(f"weight_pull: {a.method} does not run on one in-process Hilbert map "
-                             "(set slam.map = global, slam.backend = numpy, slam.grid_share = 0)")
+                             "(set slam.map = global, slam.backend = numpy, slam.grid_share = 0, slam.map_delay = 0)")
         grid = GridParticleMaps(make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution),
                                 len(maps.theta), cfg.grid, cfg.grid_likelihood_exponent)
         s = ShadowedMaps(maps, {"grid": grid, "endpoints": endpoint_shadow(maps)})
@@ -175,10 +175,11 @@ def main(argv: list[str] | None = None) -> int:
              "its free samples": pull_toward_truth(err, rec["main"] - rec["endpoints"]),
              "the grid's likelihood field": pull_toward_truth(err, rec["grid"])}
     t_s = (t_ns - t_ns[0]) * 1e-9
-    edges = ([float(x) for x in a.windows.split(",")] if a.windows
-             else list(np.linspace(0.0, float(t_s[-1]) + 1e-6, 4)))
+    last = float(t_s[-1]) + 1e-6  # the last window holds the last scan
+    edges = [float(x) for x in a.windows.split(",")] if a.windows else list(np.linspace(0.0, last, 4))
+    edges[-1] = max(edges[-1], last)
     mean_err = np.degrees(wrap_angle(err)).mean(axis=1)
-    rows = window_table(t_s, mean_err, pulls, [*edges[:-1], max(edges[-1], float(t_s[-1]) + 1e-6)])
+    rows = window_table(t_s, mean_err, pulls, edges)
     text = (f"{a.run.name}, {a.method}, seed {a.seed}, {cfg.n_particles} particles: pull toward the truth "
             f"(degrees of the cloud's mean heading, summed over the scans)\n\n" + markdown(rows, list(pulls)))
     print(text)
