@@ -98,6 +98,14 @@ def test_map_vs_trajectory_figure(tmp_path: Path) -> None:
     assert path.stat().st_size > 5000
 
 
+def test_map_vs_trajectory_axis_turns_logarithmic_when_one_map_is_far_off() -> None:
+    from stages.evaluate.radar_only import wide_span
+
+    assert not wide_span([0.3, 0.5, 1.7, 5.9])  # the twins along odometry: a linear axis reads fine
+    assert wide_span([0.3, 0.5, 1.7, 33.5])  # one diverged trajectory (coloradar_6_twin, stop 40)
+    assert not wide_span([]) and not wide_span([0.0, 2.0])
+
+
 def test_radar_only_workflow_on_a_radar_imu_log_completes_the_map_and_says_what_it_cannot_score(
         tmp_path: Path) -> None:
     """No lidar and no ground truth: the map is built along the SLAM trajectory and completed from radar

@@ -92,15 +92,24 @@ def radar_only_table(records: Sequence[Mapping[str, Any]]) -> tuple[str, list[st
     return title, headers, body
 
 
+def wide_span(values: Sequence[float], factor: float = 20.0) -> bool:
+    """Whether the positive values span more than ``factor`` (then a logarithmic axis shows them all)."""
+    positive = [v for v in values if v > 0]
+    return bool(positive) and max(positive) > factor * min(positive)
+
+
 def plot_map_vs_trajectory(path: Path, records: Sequence[Mapping[str, Any]], title: str = "") -> Path:
     """CD-l2 of the completed (filled) and radar (open) maps against the yaw RMSE (no alignment) of the
-    trajectory they were built along; a colour per sequence, a marker per source."""
+    trajectory they were built along; a colour per sequence, a marker per source. The CD-l2 axis is
+    logarithmic when the values span more than a factor of 20 (one diverged trajectory would otherwise
+    flatten every other point onto the axis)."""
     plt = figures._plt()
     rows = radar_only_rows(records)
     fig, ax = plt.subplots(figsize=(7.5, 4.8), constrained_layout=True)
     seqs = list(dict.fromkeys(r["seq"] for r in rows))
     markers = "osD^v<>p*hX"
     sources = list(dict.fromkeys(r["source"] for r in rows))
+    values: list[float] = []
     for i, seq in enumerate(seqs):
         colour = f"C{i % 10}"
         for key, filled in (("completed_map.cd_l2", True), ("radar_map.cd_l2", False)):
@@ -110,13 +119,17 @@ def plot_map_vs_trajectory(path: Path, records: Sequence[Mapping[str, Any]], tit
                     continue
                 ax.plot(a, c, markers[sources.index(r["source"]) % len(markers)], color=colour,
                         mfc=colour if filled else "none", ms=7)
-            ax.plot([], [], "o", color=colour, mfc=colour if filled else "none",
-                    label=f"{seq}: {'completed' if filled else 'radar'} map")
+                values.append(float(c))
+        ax.plot([], [], "-", color=colour, lw=5, label=seq)
     for j, src in enumerate(sources):
         ax.plot([], [], markers[j % len(markers)], color="grey", label=f"along {src}")
+    ax.plot([], [], "o", color="grey", mfc="grey", label="completed map")
+    ax.plot([], [], "o", color="grey", mfc="none", label="radar map")
+    if wide_span(values):
+        ax.set_yscale("log")
     ax.set_xlabel("yaw RMSE of the trajectory, no alignment (deg)")
     ax.set_ylabel("CD-l2 against the lidar map (m²)")
-    ax.grid(alpha=0.3)
+    ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, ncol=2)
     ax.set_title(title or "Radar-only maps: map quality against trajectory error", fontsize=10)
     fig.savefig(path, dpi=120)
