@@ -8,6 +8,7 @@ finishes and skips the ones already there: stop it at any point and run the same
     python -m stages.slam.table3 RUNS/SEQ [RUNS/SEQ ...] --methods odometry,fastslam_grid,rich_slam \\
         --seeds 0,1,2 --set n_particles=200 --out table3.jsonl
     python -m stages.slam.table3 --table table3.jsonl         # the markdown tables: mean, spread, seeds
+    python -m stages.slam.table3 --table a.jsonl b.jsonl      # rows of several sessions in one table
     python -m stages.slam.table3 --table table3.jsonl --figure table3.png   # and the figure (one panel a sequence)
     python -m stages.slam.table3 --table table3.jsonl --paper               # the twins beside the paper's Table III
 
@@ -24,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -102,6 +104,55 @@ def done_keys(out: Path) -> set[tuple[str, str, int, str]]:
         return set()
     rows = [json.loads(line) for line in out.read_text().splitlines() if line.strip()]
     return {(r["seq"], r["method"], int(r["seed"]), r.get("config", "")) for r in rows}
+
+
+#: slam parameters that change how a run executes, not what it computes (left out when rows are compared)
+EXECUTION_KEYS = ("workers", "device", "torch_threads")
+
+
+def config_key(config: str) -> str:
+    """A row's ``config`` reduced to what sets its numbers: execution-only keys (:data:`EXECUTION_KEYS`) and
+    values equal to the stage's current defaults are dropped, so ``{"n_particles": 200, "workers": 0}`` and
+    ``{"workers": 2}`` are one configuration. (A row written under an older default cannot be told apart
+    from one under today's: its file's name and the README say which stop wrote it.)"""
+    given = json.loads(config) if config else {}
+    defaults = SlamParams().model_dump()
+    kept = {k: v for k, v in given.items() if k not in EXECUTION_KEYS and (k not in defaults or defaults[k] != v)}
+    return json.dumps(kept, sort_keys=True)
+
+
+def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
+    """The rows of several results files, for one table: a (sequence, method, seed) row that a later file
+    repeats is replaced by it; a table cell whose rows were made with different configurations
+    (:func:`config_key`) is refused, naming both, since its mean would mix them. Returns the rows and notes
+    (the replacements). Raises ``ValueError`` with the file and line for a line that is not a JSON row."""
+    rows: dict[tuple[str, str, int], dict[str, Any]] = {}
+    notes: list[str] = []
+    for path in paths:
+        if not path.exists():
+            raise ValueError(f"{path}: no such results file (write one with --out)")
+        for i, line in enumerate(path.read_text().splitlines(), 1):
+            if not line.strip():
+                continue
+            try:
+                r = json.loads(line)
+                key = (str(r["seq"]), str(r["method"]), int(r["seed"]))
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+                raise ValueError(f"{path}:{i}: not a table3 row ({exc}); each line is one JSON object with seq, "
+                                 "method and seed") from None
+            if key in rows:
+                notes.append(f"{key[0]} {key[1]} seed {key[2]}: the row of {path} replaces an earlier one")
+            rows[key] = {**r, "_source": f"{path}:{i}"}
+    configs: dict[tuple[str, str], tuple[str, str]] = {}
+    for (seq, method, _), r in rows.items():
+        if method == "odometry":
+            continue
+        c = config_key(r.get("config", ""))
+        first = configs.setdefault((seq, method), (c, r["_source"]))
+        if first[0] != c:
+            raise ValueError(f"{seq} {method}: rows of different configurations in one cell, {first[0]} "
+                             f"({first[1]}) and {c} ({r['_source']}); tabulate them separately")
+    return [{k: v for k, v in r.items() if k != "_source"} for r in rows.values()], notes
 
 
 def append_row(out: Path, row: dict[str, Any]) -> None:
@@ -258,7 +309,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("table3.jsonl"))
     ap.add_argument("--estimates", default="", help="comma-separated trajectory estimates (" + ", ".join(ESTIMATES)
                     + ") written as extra rows '<method>, <estimate>' from the same filter run")
-    ap.add_argument("--table", type=Path, help="print the markdown table of this results file and exit")
+    ap.add_argument("--table", type=Path, nargs="+", help="print the markdown table of these results files and "
+                    "exit (several: one table; a row repeated in a later file replaces the earlier one; cells that "
+                    "mix configurations are refused)")
     ap.add_argument("--figure", type=Path, help="with --table: also draw it into this PNG")
     ap.add_argument("--paper", action="store_true", help="with --table: also the ColoRadar twins beside the paper's "
                     "Table III (a line per twin; in the figure, a mark at the paper's value of each method)")
@@ -269,7 +322,13 @@ def main(argv: list[str] | None = None) -> int:
                     "protocol)")
     a = ap.parse_args(argv)
     if a.table:
-        rows = [json.loads(line) for line in a.table.read_text().splitlines() if line.strip()]
+        try:
+            rows, notes = read_rows(a.table)
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        for n in notes:
+            print(f"note: {n}", file=sys.stderr)
         has_whole = any(KEYS["whole"][0] in r for r in rows)
         if has_whole:  # the headline first
             print(f"{TITLES['whole']}:\n\n{table(rows, alignment='whole')}\n")

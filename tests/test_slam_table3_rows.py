@@ -1,0 +1,54 @@
+"""``python -m stages.slam.table3 --table A B``: rows of several results files in one table."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from stages.slam import table3
+
+
+def _row(seq: str, method: str, seed: int, yaw: float, config: dict[str, object]) -> str:
+    return json.dumps({"seq": seq, "method": method, "seed": seed, "config": json.dumps(config),
+                       "pos_rmse_m": 0.1, "yaw_rmse_deg": yaw, "pos_rmse_whole_m": 0.1, "yaw_rmse_whole_deg": yaw})
+
+
+def test_config_key_drops_execution_keys_and_defaults() -> None:
+    assert table3.config_key('{"n_particles": 200, "workers": 0}') == table3.config_key('{"workers": 2}') == "{}"
+    assert table3.config_key('{"n_particles": 50}') == '{"n_particles": 50}'
+    assert table3.config_key("") == "{}"
+
+
+def test_rows_of_two_files_make_one_table_and_a_later_row_replaces_an_earlier_one(tmp_path: Path) -> None:
+    a, b = tmp_path / "a.jsonl", tmp_path / "b.jsonl"
+    a.write_text("\n".join([_row("demo", "odometry", 0, 0.87, {"workers": 0}),
+                            _row("demo", "rich_slam", 0, 0.72, {"workers": 0}),
+                            _row("demo", "rich_slam", 1, 0.90, {"workers": 0})]) + "\n")
+    b.write_text("\n".join([_row("demo", "rich_slam", 1, 0.63, {"n_particles": 200, "workers": 2}),
+                            _row("demo", "rich_slam", 2, 0.80, {})]) + "\n\n")
+    rows, notes = table3.read_rows([a, b])
+    yaw = sorted(r["yaw_rmse_whole_deg"] for r in rows if r["method"] == "rich_slam")
+    assert yaw == [0.63, 0.72, 0.80]  # seed 1 from b.jsonl
+    assert notes == [f"demo rich_slam seed 1: the row of {b} replaces an earlier one"]
+    md = table3.table(rows, alignment="whole")
+    assert "0.72 ± 0.09 (3)" in md  # mean 0.7167, half range (0.80 - 0.63) / 2
+
+
+def test_a_cell_that_mixes_configurations_is_refused_naming_both(tmp_path: Path) -> None:
+    a, b = tmp_path / "a.jsonl", tmp_path / "b.jsonl"
+    a.write_text(_row("demo", "rich_slam", 0, 0.72, {"workers": 0}) + "\n")
+    b.write_text(_row("demo", "rich_slam", 1, 0.63, {"endpoint_tolerance": 0.25}) + "\n")
+    with pytest.raises(ValueError, match=r"demo rich_slam: rows of different configurations.*a\.jsonl:1.*b\.jsonl:1"):
+        table3.read_rows([a, b])
+    assert table3.main(["--table", str(a), str(b)]) == 2
+
+
+def test_a_line_that_is_not_a_row_names_its_file_and_line(tmp_path: Path) -> None:
+    a = tmp_path / "a.jsonl"
+    a.write_text(_row("demo", "rich_slam", 0, 0.72, {}) + "\n{\"seq\": \"demo\"\n")
+    with pytest.raises(ValueError, match=r"a\.jsonl:2: not a table3 row"):
+        table3.read_rows([a])
+    with pytest.raises(ValueError, match="no such results file"):
+        table3.read_rows([tmp_path / "missing.jsonl"])
