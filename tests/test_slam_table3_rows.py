@@ -52,3 +52,8 @@ def test_a_line_that_is_not_a_row_names_its_file_and_line(tmp_path: Path) -> Non
         table3.read_rows([a])
     with pytest.raises(ValueError, match="no such results file"):
         table3.read_rows([tmp_path / "missing.jsonl"])
+    with pytest.raises(ValueError, match="no such results file"):
+        table3.read_rows([tmp_path])  # a folder
+    a.write_text(json.dumps({"seq": "demo", "method": "rich_slam", "seed": 0, "config": "{workers: 0"}) + "\n")
+    with pytest.raises(ValueError, match=r"a\.jsonl:1: its config is not JSON"):
+        table3.read_rows([a])

@@ -129,7 +129,7 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
     rows: dict[tuple[str, str, int], dict[str, Any]] = {}
     notes: list[str] = []
     for path in paths:
-        if not path.exists():
+        if not path.is_file():
             raise ValueError(f"{path}: no such results file (write one with --out)")
         for i, line in enumerate(path.read_text().splitlines(), 1):
             if not line.strip():
@@ -147,7 +147,10 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
     for (seq, method, _), r in rows.items():
         if method == "odometry":
             continue
-        c = config_key(r.get("config", ""))
+        try:
+            c = config_key(r.get("config", ""))
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{r['_source']}: its config is not JSON ({exc})") from None
         first = configs.setdefault((seq, method), (c, r["_source"]))
         if first[0] != c:
             raise ValueError(f"{seq} {method}: rows of different configurations in one cell, {first[0]} "
