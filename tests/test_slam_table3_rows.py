@@ -57,3 +57,12 @@ def test_a_line_that_is_not_a_row_names_its_file_and_line(tmp_path: Path) -> Non
     a.write_text(json.dumps({"seq": "demo", "method": "rich_slam", "seed": 0, "config": "{workers: 0"}) + "\n")
     with pytest.raises(ValueError, match=r"a\.jsonl:1: its config is not JSON"):
         table3.read_rows([a])
+
+
+def test_set_items_parse_as_json_and_an_item_without_equals_is_named() -> None:
+    assert table3.slam_overrides(["n_particles=50", "slam.method=rich_slam", "map=global"]) == {
+        "n_particles": 50, "method": "rich_slam", "map": "global"}
+    with pytest.raises(ValueError, match=r"--set 'n_particles': expected KEY=VALUE"):
+        table3.slam_overrides(["workers=0", "n_particles"])
+    with pytest.raises(SystemExit):  # argparse's usage error, exit 2
+        table3.main(["RUNS/x", "--set", "n_particles"])

@@ -66,10 +66,13 @@ TITLES = {"whole": "Whole-trajectory SE(2) alignment (= evo_ape --align in the p
 
 
 def slam_overrides(items: Sequence[str]) -> dict[str, Any]:
-    """``[slam.]KEY=VALUE`` strings as slam parameter overrides: VALUE as JSON, else the string itself."""
+    """``[slam.]KEY=VALUE`` strings as slam parameter overrides: VALUE as JSON, else the string itself.
+    Raises ``ValueError`` naming the first item without ``=``."""
     overrides: dict[str, Any] = {}
     for item in items:
-        key, _, value = item.partition("=")
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE")
         try:
             overrides[key.removeprefix("slam.")] = json.loads(value)
         except json.JSONDecodeError:
@@ -110,13 +113,15 @@ def done_keys(out: Path) -> set[tuple[str, str, int, str]]:
 EXECUTION_KEYS = ("workers", "device", "torch_threads")
 
 
-def config_key(config: str) -> str:
+def config_key(config: str, defaults: dict[str, Any] | None = None) -> str:
     """A row's ``config`` reduced to what sets its numbers: execution-only keys (:data:`EXECUTION_KEYS`) and
-    values equal to the stage's current defaults are dropped, so ``{"n_particles": 200, "workers": 0}`` and
-    ``{"workers": 2}`` are one configuration. (A row written under an older default cannot be told apart
-    from one under today's: its file's name and the README say which stop wrote it.)"""
+    values equal to the stage's current defaults (``defaults``: ``SlamParams().model_dump()`` when not given)
+    are dropped, so ``{"n_particles": 200, "workers": 0}`` and ``{"workers": 2}`` are one configuration. (A row
+    written under an older default cannot be told apart from one under today's: its file's name and the README
+    say which stop wrote it.)"""
     given = json.loads(config) if config else {}
-    defaults = SlamParams().model_dump()
+    if defaults is None:
+        defaults = SlamParams().model_dump()
     kept = {k: v for k, v in given.items() if k not in EXECUTION_KEYS and (k not in defaults or defaults[k] != v)}
     return json.dumps(kept, sort_keys=True)
 
@@ -127,6 +132,7 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
     (:func:`config_key`) is refused, naming both, since its mean would mix them. Returns the rows and notes
     (the replacements). Raises ``ValueError`` with the file and line for a line that is not a JSON row."""
     rows: dict[tuple[str, str, int], dict[str, Any]] = {}
+    source: dict[tuple[str, str, int], str] = {}  # file:line of each kept row
     notes: list[str] = []
     for path in paths:
         if not path.is_file():
@@ -142,20 +148,22 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
                                  "method and seed") from None
             if key in rows:
                 notes.append(f"{key[0]} {key[1]} seed {key[2]}: the row of {path} replaces an earlier one")
-            rows[key] = {**r, "_source": f"{path}:{i}"}
+            rows[key], source[key] = r, f"{path}:{i}"
+    defaults = SlamParams().model_dump()
     configs: dict[tuple[str, str], tuple[str, str]] = {}
-    for (seq, method, _), r in rows.items():
+    for key, r in rows.items():
+        seq, method, _ = key
         if method == "odometry":
             continue
         try:
-            c = config_key(r.get("config", ""))
+            c = config_key(r.get("config", ""), defaults)
         except json.JSONDecodeError as exc:
-            raise ValueError(f"{r['_source']}: its config is not JSON ({exc})") from None
-        first = configs.setdefault((seq, method), (c, r["_source"]))
+            raise ValueError(f"{source[key]}: its config is not JSON ({exc})") from None
+        first = configs.setdefault((seq, method), (c, source[key]))
         if first[0] != c:
             raise ValueError(f"{seq} {method}: rows of different configurations in one cell, {first[0]} "
-                             f"({first[1]}) and {c} ({r['_source']}); tabulate them separately")
-    return [{k: v for k, v in r.items() if k != "_source"} for r in rows.values()], notes
+                             f"({first[1]}) and {c} ({source[key]}); tabulate them separately")
+    return list(rows.values()), notes
 
 
 def append_row(out: Path, row: dict[str, Any]) -> None:
@@ -357,7 +365,10 @@ def main(argv: list[str] | None = None) -> int:
             os.replace(tmp, a.figure)
             print(f"wrote {a.figure}")
         return 0
-    overrides = slam_overrides(a.set)
+    try:
+        overrides = slam_overrides(a.set)
+    except ValueError as exc:
+        ap.error(str(exc))
     missing = [r for r in a.runs if not (r / "odometry" / "odometry.parquet").exists()]
     if missing:
         ap.error(f"{missing[0]}: no odometry/odometry.parquet; run `pipeline run odometry --seq "

@@ -143,10 +143,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, help="write the table as markdown here")
     ap.add_argument("--npz", type=Path, help="write the per-scan record (errors, log-likelihoods, pulls) here")
     a = ap.parse_args(argv)
-    bad = [kv for kv in a.sets if "=" not in kv]
-    if bad:
-        ap.error(f"--set {bad[0]!r}: expected KEY=VALUE")
-    overrides: dict[str, Any] = {"workers": 0, **slam_overrides(a.sets)}
+    try:
+        overrides: dict[str, Any] = {"workers": 0, **slam_overrides(a.sets)}
+    except ValueError as exc:
+        ap.error(str(exc))
     p = SlamParams(**overrides)
     t_ns, odo, samples, truth, motion = load_inputs(a.run, p)
     half, centre = domain_from_trajectory(odo[:, :2], p.domain_padding)
