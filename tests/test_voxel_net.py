@@ -22,11 +22,13 @@ from stages.complete.voxel_grid import (  # noqa: E402
     voxel_features,
 )
 from stages.complete.voxel_net import (  # noqa: E402
+    SYMMETRIES,
     VoxelNetConfig,
     VoxelUNet,
     map_domain,
     predict_tiles,
     reuse_freed_memory,
+    symmetric_probability,
 )
 
 RES = 0.15
@@ -157,6 +159,55 @@ def test_tiled_inference_equals_one_pass(core: int) -> None:
     assert np.abs(short.probs[c] - one.probs[a]).max() > 1e-6
 
 
+def _live_model(seed: int = 0) -> VoxelUNet:
+    torch.manual_seed(seed)
+    model = VoxelUNet(VoxelNetConfig(widths=(3, 4, 5), bottom_convs=1, bottom_dilation=2)).eval()
+    with torch.no_grad():  # weights that keep the ReLUs alive, so that every layer shapes the output
+        for p in model.parameters():
+            if p.ndim > 1:
+                p.normal_(0.0, (2.0 / p[0].numel()) ** 0.5)
+            else:
+                p.uniform_(-0.1, 0.3)
+    return model
+
+
+def _act(x: torch.Tensor, k: int, mirror: bool, dims: tuple[int, int]) -> torch.Tensor:
+    """One lattice symmetry on the xy axes ``dims``: the mirror in x, then ``k`` quarter turns."""
+    return torch.rot90(torch.flip(x, (dims[0],)) if mirror else x, k, dims)
+
+
+@pytest.mark.parametrize("tta", [2, 4, 8])
+def test_symmetry_averaged_probability_is_equivariant(tta: int) -> None:
+    # the mean over a group of symmetries commutes with each of them, whatever the weights: this fails if an
+    # output is turned back onto the lattice the wrong way
+    model = _live_model()
+    x = torch.rand(1, 5, 16, 16, 8)
+    with torch.no_grad():
+        p = symmetric_probability(model, x, tta)
+        one = torch.sigmoid(model(x))
+        assert not torch.allclose(p, one, atol=1e-4)  # the average is not the network alone
+        for k, mirror in SYMMETRIES[:tta]:
+            moved = symmetric_probability(model, _act(x, k, mirror, (2, 3)), tta)
+            torch.testing.assert_close(moved, _act(p, k, mirror, (1, 2)), rtol=0, atol=1e-6)
+        assert torch.equal(symmetric_probability(model, x, 1), one)
+        with pytest.raises(ValueError, match="tta must be one of"):
+            symmetric_probability(model, x, 3)
+
+
+def test_tiled_symmetry_averaged_inference_equals_one_pass() -> None:
+    model = _live_model()
+    keys, path = _scene()
+    band = Band(radius=2.0, z_below=-1.5, z_above=1.5)
+    dom = map_domain(path, RES, band, model.stride())
+    one = predict_tiles(model, keys, path, RES, band, core=max(dom.shape[:2]) + model.stride(), tta=8)
+    tiled = predict_tiles(model, keys, path, RES, band, core=16, tta=8)
+    plain = predict_tiles(model, keys, path, RES, band, core=16)
+    a, b, c = (np.lexsort(t.keys.T) for t in (one, tiled, plain))
+    assert np.array_equal(one.keys[a], tiled.keys[b])
+    np.testing.assert_allclose(tiled.probs[b], one.probs[a], rtol=0, atol=1e-6)
+    assert np.abs(plain.probs[c] - one.probs[a]).max() > 1e-3
+
+
 def test_bf16_inference_is_close_to_float32_and_the_default_is_exact() -> None:
     """``bf16`` runs the network under bfloat16 autocast: the same voxels, probabilities close but not equal;
     without it the float32 result is unchanged."""
@@ -180,11 +231,16 @@ def test_checkpoint_round_trip_and_kind_errors(tmp_path) -> None:
     )
 
     model = VoxelUNet(VoxelNetConfig(widths=(3, 4)))
-    meta = VoxelMeta(model.config, RES, 0.4, Band(), train={"note": "test"})
+    meta = VoxelMeta(model.config, RES, 0.4, Band(), train={"note": "test"}, tta=4)
     path = save_voxel_checkpoint(tmp_path / "v.safetensors", model, meta, half=False)
     assert checkpoint_kind(path) == "voxel_unet"
     back, m2 = load_voxel_checkpoint(path)
-    assert m2.threshold == 0.4 and m2.resolution == RES and m2.config == model.config
+    assert m2.threshold == 0.4 and m2.resolution == RES and m2.config == model.config and m2.tta == 4
+    old = dict(meta.to_strings())
+    del old["tta"]  # a checkpoint written before the symmetry count existed: the network alone
+    assert VoxelMeta.from_strings(old, "old").tta == 1
+    with pytest.raises(UserError, match="tta '3' is not a symmetry count"):
+        VoxelMeta.from_strings(old | {"tta": "3"}, "bad")
     for k, v in model.state_dict().items():
         assert torch.equal(back.state_dict()[k], v)
     from safetensors.torch import save_file

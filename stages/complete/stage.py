@@ -94,6 +94,10 @@ class CompleteParams(StageParams):
     bf16: bool = Field(False, description="voxel model: run the network under bfloat16 autocast (1.5x faster on a "
                        "CPU with bf16 support, Table III unchanged to the printed digit on the 18 test scenes; the "
                        "probabilities differ slightly, so the map may differ by a few voxels)")
+    tta: Literal[1, 2, 4, 8] | None = Field(None, description="voxel model: lattice symmetries (quarter turns "
+                                           "about z, mirror) whose predictions are averaged, each costing one "
+                                           "pass; None = the checkpoint's own count, with which its threshold "
+                                           "was chosen")
     batch_size: int = Field(8, ge=1, description="patches per forward pass")
     seed: int = Field(0, description="seed of the input resampling (patches with more or fewer points than the "
                       "network's input size) and of torch")
@@ -347,7 +351,7 @@ class CompleteStage(Stage):
         core = p.tile if p.tile is not None else auto_core(dom)
         with ctx.progress(len(tile_origins(dom, core)), "completing voxel tiles") as advance:
             pred = predict_tiles(model, keys, traj, res, meta.band, core=core, device=device, advance=advance,
-                                 bf16=p.bf16)
+                                 bf16=p.bf16, tta=meta.tta if p.tta is None else p.tta)
         wall = time.perf_counter() - t0
         out = key_centres(completed_keys(pred, meta.threshold, keys if meta.union_radar else None,
                                          meta.union_gate), res)
@@ -360,6 +364,7 @@ class CompleteStage(Stage):
             "resolution": res,
             "device": str(device),
             "bf16": p.bf16,
+            "tta": meta.tta if p.tta is None else p.tta,
             "checkpoint": str(ckpt.relative_to(PROJECT_ROOT) if ckpt.is_relative_to(PROJECT_ROOT) else ckpt),
             "model_size": f"voxel U-Net {n_parameters(model):,} parameters",
             "n_parameters": n_parameters(model),

@@ -31,6 +31,9 @@ class VoxelMeta:
     train: dict[str, Any] = field(default_factory=dict)
     #: with ``union_radar``: only radar voxels whose predicted probability is at least this are added (0: all)
     union_gate: float = 0.0
+    #: lattice symmetries averaged at inference (``voxel_net.symmetric_probability``); the threshold and the gate
+    #: were chosen with this many (1: the network alone, checkpoints before stop 42)
+    tta: int = 1
 
     def to_strings(self) -> dict[str, str]:
         return {
@@ -45,6 +48,7 @@ class VoxelMeta:
             "union_radar": json.dumps(bool(self.union_radar)),
             "train": json.dumps(self.train),
             "union_gate": repr(float(self.union_gate)),
+            "tta": str(int(self.tta)),
         }
 
     @classmethod
@@ -58,13 +62,16 @@ class VoxelMeta:
         if d.get("format_version") != VOXEL_FORMAT_VERSION:
             raise UserError(f"{where}: voxel checkpoint format version {d.get('format_version')} is not "
                             f"{VOXEL_FORMAT_VERSION}; retrain it with python -m stages.complete.train_voxel")
+        tta = d.get("tta", "1")
+        if tta not in ("1", "2", "4", "8"):
+            raise UserError(f"{where}: tta {tta!r} is not a symmetry count of the lattice (1, 2, 4, 8)")
         channels = tuple(json.loads(d["channels"]))
         if channels != CHANNELS:
             raise UserError(f"{where}: trained on channels {list(channels)}, this code computes {list(CHANNELS)}")
         return cls(VoxelNetConfig.from_dict(json.loads(d["model_config"])), float(d["resolution"]),
                    float(d["threshold"]), Band(**json.loads(d["band"])), channels,
                    bool(json.loads(d.get("union_radar", "false"))), json.loads(d.get("train", "{}")),
-                   float(d.get("union_gate", "0.0")))
+                   float(d.get("union_gate", "0.0")), int(tta))
 
 
 def checkpoint_kind(path: str | Path) -> str:

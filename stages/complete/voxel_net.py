@@ -107,6 +107,36 @@ class VoxelUNet(nn.Module):
         return out
 
 
+#: the lattice's xy symmetries as (quarter turns about z, mirror in x), ordered so that the first 1, 2, 4 or 8
+#: form a group: the identity, the mirror, the half turn with and without it (Klein's four-group), then the
+#: quarter turns (the dihedral group of the square, the training augmentation of ``train_voxel.augment``)
+SYMMETRIES: tuple[tuple[int, bool], ...] = ((0, False), (0, True), (2, False), (2, True),
+                                            (1, False), (1, True), (3, False), (3, True))
+TTA_SIZES = (1, 2, 4, 8)
+
+
+def symmetric_probability(model: VoxelUNet, x: torch.Tensor, tta: int = 1) -> torch.Tensor:
+    """Occupancy probability ``(B, X, Y, Z)`` of input ``x`` ``(B, C, X, Y, Z)``: the mean of the network's
+    sigmoid over the first ``tta`` of :data:`SYMMETRIES` (test-time augmentation), each output turned back
+    onto the input's lattice. Every input channel is invariant under these maps (occupancy, density, distance
+    to and height over the trajectory), so each term is a prediction of the same map. ``tta = 1``: the network
+    alone, bit for bit."""
+    if tta not in TTA_SIZES:
+        raise ValueError(f"tta must be one of {TTA_SIZES} (symmetries of the lattice averaged), got {tta}")
+    if tta == 1:
+        return torch.sigmoid(model(x))
+    total: torch.Tensor | None = None
+    for k, mirror in SYMMETRIES[:tta]:
+        xt = torch.flip(x, (2,)) if mirror else x
+        xt = torch.rot90(xt, k, (2, 3)).contiguous(memory_format=torch.channels_last_3d)
+        p = torch.rot90(torch.sigmoid(model(xt).float()), -k, (1, 2))
+        p = torch.flip(p, (1,)) if mirror else p
+        total = p if total is None else total + p
+        del xt
+    assert total is not None
+    return total / tta
+
+
 def n_parameters(model: nn.Module) -> int:
     return int(sum(p.numel() for p in model.parameters()))
 
@@ -202,7 +232,7 @@ def reuse_freed_memory(limit: int = 2**31 - 1) -> Iterator[None]:
 def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float, band: Band,
                   core: int | None = None, halo: int | None = None, device: str | torch.device = "cpu",
                   advance: Callable[[int], None] | None = None, origins: Sequence[tuple[int, int]] | None = None,
-                  bf16: bool = False) -> TilePrediction:
+                  bf16: bool = False, tta: int = 1) -> TilePrediction:
     """Occupancy probability of every band voxel of a map: one pass over the map's :class:`Domain` (zero
     padding at its faces), computed as xy tiles of ``core`` voxels (None: :func:`auto_core`), each with
     ``halo`` voxels of context cut at the domain's faces, and the whole z range of the domain.
@@ -212,8 +242,11 @@ def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float
     band voxel are skipped (their voxels are outside the pre-filter band and never output), and so are tiles
     with no radar voxel in core + halo (nothing to complete: no voxel output). ``origins`` restricts the run
     to some tiles (tests). ``bf16``: the network under bfloat16 autocast (1.7x faster on a CPU with AVX-512
-    BF16; probabilities move by up to about 0.01, so the completed map can change by a few voxels).
+    BF16; probabilities move by up to about 0.01, so the completed map can change by a few voxels). ``tta``:
+    the mean over that many lattice symmetries (:func:`symmetric_probability`), tta times the network's cost.
     """
+    if tta not in TTA_SIZES:
+        raise ValueError(f"tta must be one of {TTA_SIZES} (symmetries of the lattice averaged), got {tta}")
     s = model.stride()
     dom = map_domain(trajectory, res, band, s)
     core = core if core is not None else auto_core(dom)
@@ -251,9 +284,9 @@ def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float
         t1 = time.perf_counter()
         x = torch.from_numpy(feats)[None].to(device).contiguous(memory_format=torch.channels_last_3d)
         with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bf16):
-            logit = model(x)[0, cx, cy, :]
-        prob = torch.sigmoid(logit).float().cpu().numpy()
-        del x, logit
+            prob_t = symmetric_probability(model, x, tta)[0, cx, cy, :]
+        prob = prob_t.float().cpu().numpy()
+        del x, prob_t
         out.model_seconds += time.perf_counter() - t1
         out.n_voxels_run += int(np.prod(ishape))
         idx = np.argwhere(inband)

@@ -65,9 +65,10 @@ def gate_row(gate: float) -> str:
 
 def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core: int | None = None,
               log: Any = print, only: list[str] | None = None, device: str = "cpu", bf16: bool = False,
-              gates: tuple[float, ...] = ()) -> dict[str, Any]:
+              gates: tuple[float, ...] = (), tta: int | None = None) -> dict[str, Any]:
     """Rows ``{row: {scene: metrics}}`` and timings for the scenes of ``split`` (test, val). ``gates``: also the
-    gated unions (:func:`gate_row`); the checkpoint's own gate, if it has one, is always a row."""
+    gated unions (:func:`gate_row`); the checkpoint's own gate, if it has one, is always a row. ``tta``: the
+    lattice symmetries averaged (None: the checkpoint's own count)."""
     from sources.mapset import read_index, read_map_set
     from stages.complete.maps import map_split
     from stages.evaluate.rmap_paper import TABLE_III
@@ -104,7 +105,8 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
                 res = meta.resolution
                 rk = lattice_keys(trajectory_band(m.radar, m.trajectory, meta.band), res, f"{s} radar map")
                 t0 = time.perf_counter()
-                pred = predict_tiles(model, rk, m.trajectory, res, meta.band, core=core, device=device, bf16=bf16)
+                pred = predict_tiles(model, rk, m.trajectory, res, meta.band, core=core, device=device, bf16=bf16,
+                                     tta=meta.tta if tta is None else tta)
                 seconds[s] = time.perf_counter() - t0
                 cost["voxels_run"] += pred.n_voxels_run
                 cost["feature_seconds"] += pred.feature_seconds
@@ -126,6 +128,7 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
         out["device"] = device
         out["bf16"] = bf16
         out["threshold"] = meta.threshold if meta else None
+        out["tta"] = (meta.tta if tta is None else tta) if meta else None
         out["union"] = {"radar": meta.union_radar, "gate": meta.union_gate} if meta else None
     return out
 
@@ -239,6 +242,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="write <out>.json and <out>.md")
     ap.add_argument("--decide-union", action="store_true", help="--split val: apply UNION_RULE and store the "
                     "decision in the checkpoint")
+    ap.add_argument("--tta", type=int, default=None, choices=(1, 2, 4, 8), help="lattice symmetries averaged "
+                    "(default: the checkpoint's own count)")
+    ap.add_argument("--decide-tta", action="store_true", help="--split val: first apply TTA_RULE on the validation "
+                    "crops and store the symmetry count and its threshold in the checkpoint")
     ap.add_argument("--gates", action="store_true", help="also score the gated unions of GATES (up to the threshold)")
     ap.add_argument("--decide-gate", action="store_true", help="--split val: score every gate, apply GATE_RULE and "
                     "store the gate in the checkpoint")
@@ -251,6 +258,13 @@ def main(argv: list[str] | None = None) -> int:
             torch.set_num_threads(args.threads)
         ref = mm_gflops(device=args.device)
     ckpt = None if args.no_model else (args.checkpoint or Path("data/models/rmap_voxel.safetensors"))
+    if args.decide_tta and ckpt is not None:
+        if args.split != "val" or args.scenes or args.tta is not None:
+            raise SystemExit("error: --decide-tta needs --split val over all validation scenes, without --tta")
+        from stages.complete.train_voxel import TTA_RULE, decide_tta
+
+        n, t = decide_tta(args.maps, ckpt)
+        print(f"symmetries averaged: {n}, threshold {t} ({TTA_RULE})")
     gates: tuple[float, ...] = ()
     if (args.gates or args.decide_gate) and ckpt is not None:
         from stages.complete.voxel_checkpoint import load_voxel_checkpoint
@@ -258,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
         gates = tuple(g for g in GATES if g <= load_voxel_checkpoint(ckpt)[1].threshold)
     table = run_table(args.maps, args.split, ckpt, Band(), args.core,
                       only=args.scenes.split(",") if args.scenes else None, device=args.device,
-                      bf16=args.bf16, gates=gates)
+                      bf16=args.bf16, gates=gates, tta=args.tta)
     if ref is not None:
         import torch
 
@@ -272,8 +286,9 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit("error: --decide-union needs --split val over all validation scenes")
         print(f"\nunion with the pre-filtered radar: {write_union(ckpt, table)} ({UNION_RULE})")
     if args.decide_gate and ckpt is not None:
-        if args.split != "val" or args.scenes:
-            raise SystemExit("error: --decide-gate needs --split val over all validation scenes")
+        if args.split != "val" or args.scenes or args.tta is not None:
+            raise SystemExit("error: --decide-gate needs --split val over all validation scenes, with the "
+                             "checkpoint's own symmetry count (no --tta)")
         print(f"\ngate of the union with the pre-filtered radar: {write_gate(ckpt, table)} ({GATE_RULE})")
     if "inference_seconds" in table:
         print(f"\ninference {table['inference_seconds']:.1f} s for {len(table['scenes'])} scenes "
