@@ -123,3 +123,24 @@ def test_bag_source_writes_the_parameter_covariance(tmp_path) -> None:
     np.testing.assert_allclose(got["cov_yawyaw"], want[:, 2, 2])
     assert np.all(got["cov_xy"] == 0) and got["cov_xx"][0] == 0
     assert got["cov_xx"][1] == pytest.approx((0.01 + 0.05 * 0.1) ** 2, rel=0.05)  # 1 m/s at 10 Hz
+
+
+def test_heading_window_nees_is_one_for_independent_errors_and_grows_with_a_bias() -> None:
+    from stages.odometry.metrics import heading_window_nees
+
+    rng = np.random.default_rng(3)
+    n, sd = 30001, 0.002
+    ref = np.cumsum(rng.normal(0.0, 0.01, n))
+    est = ref + np.r_[0.0, np.cumsum(rng.normal(0.0, sd, n - 1))]
+    var, ok = np.full(n, sd**2), np.ones(n, bool)
+    honest = heading_window_nees(est, ref, var, ok)
+    for w, v in honest.items():  # mean of n / w chi-square(1) values: within 4 sd of 1
+        assert abs(v - 1.0) < 4 * np.sqrt(2.0 / (n // w)), (w, v)
+    # a constant gyro bias of a quarter of the per-increment sd: invisible per increment, dominant over 30 s
+    biased = heading_window_nees(est + 0.25 * sd * np.arange(n), ref, var, ok)
+    assert biased[1] < 1.3 and biased[300] > 10 * honest[300]
+    # a missing pose removes the windows that span it, and only those
+    gap = ok.copy()
+    gap[5000] = False
+    assert heading_window_nees(est, ref, var, gap)[10] == pytest.approx(honest[10], rel=0.01)
+    assert np.isnan(heading_window_nees(est[:50], ref[:50], var[:50], ok[:50], windows=(100,))[100])

@@ -90,3 +90,32 @@ def increment_nees(est: F64, ref: F64, cov: F64, ok: npt.NDArray[np.bool_]) -> d
             "share_below_chi2_95": round(float(np.mean(nees < 7.8147)), 4),
             "axis_mean": [round(float(v), 4) for v in axis.mean(axis=0)],
             "within_tolerance": bool(3.0 / NEES_TOLERANCE <= mean <= 3.0 * NEES_TOLERANCE)}
+
+
+#: windows (increments) of :func:`heading_window_nees`: one scan, 1 s, 10 s and 30 s at the radar's 10 Hz
+NEES_WINDOWS = (1, 10, 100, 300)
+
+
+def heading_window_nees(est_yaw: F64, ref_yaw: F64, var_yaw: F64, ok: npt.NDArray[np.bool_],
+                        windows: tuple[int, ...] = NEES_WINDOWS) -> dict[int, float]:
+    """The heading change over windows of W consecutive increments, normalised by the sum of the W increments'
+    own yaw variances: mean of ``(d_est - d_true)^2 / sum var`` over non-overlapping windows whose scans are all
+    ``ok`` (NaN where none). Independent increments with honest variances give 1 at every W (chi-square(1));
+    errors correlated from one increment to the next (a gyro bias, a scale error) make it grow with W: the
+    summed per-increment variance then understates the heading error over a window, which is what a proposal
+    that draws each increment's noise independently spreads its particles by."""
+    est_yaw, ref_yaw = np.asarray(est_yaw, np.float64), np.asarray(ref_yaw, np.float64)
+    var = np.asarray(var_yaw, np.float64)
+    pose_ok = np.asarray(ok, bool)
+    inc_ok = np.zeros(len(var), bool)  # increment i: from pose i-1 to pose i
+    inc_ok[1:] = pose_ok[1:] & pose_ok[:-1] & np.isfinite(var[1:]) & (var[1:] > 0)
+    n_ok = np.r_[0, np.cumsum(inc_ok)]
+    total = np.r_[0.0, np.cumsum(np.where(inc_ok, var, 0.0))]
+    out: dict[int, float] = {}
+    for w in windows:
+        k = np.arange(0, len(est_yaw) - w, w)  # window k: poses k..k+w, increments k+1..k+w
+        good = n_ok[k + w + 1] - n_ok[k + 1] == w
+        v = total[k + w + 1] - total[k + 1]
+        e = wrap_angle((est_yaw[k + w] - est_yaw[k]) - (ref_yaw[k + w] - ref_yaw[k]))
+        out[w] = float(np.mean(e[good] ** 2 / v[good])) if good.any() else float("nan")
+    return out

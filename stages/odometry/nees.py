@@ -4,7 +4,9 @@ Usage: ``python -m stages.odometry.nees RUNS_DIR SEQ [SEQ ...] [--calibrate CAL 
 sequence, the normalised estimation error squared of the body-frame increments against the ground truth
 (:func:`stages.odometry.metrics.increment_nees`; chi-square(3): mean 3, median 2.37). ``--calibrate`` names
 runs (never evaluated ones) whose pooled mean NEES gives the factor ``increment_cov_scale`` that makes it 3;
-the table is then also given with that factor. Runs come from ``pipeline run odometry --seq SEQ
+the table is then also given with that factor. ``--windows``: also the heading NEES over windows of 1, 10, 100
+and 300 increments (:func:`stages.odometry.metrics.heading_window_nees`; 1 at every window when the increments'
+errors are independent). Runs come from ``pipeline run odometry --seq SEQ
 --runs-dir RUNS_DIR``; the covariances are divided by the factor each run was made with, so the factor is
 chosen on the EKF's own covariance.
 """
@@ -23,7 +25,7 @@ import numpy.typing as npt
 from pipeline.errors import UserError
 from schemas.io import read_artifact
 from stages.ingest.geometry import interpolate_poses, yaw_of
-from stages.odometry.metrics import NEES_TOLERANCE, increment_nees
+from stages.odometry.metrics import NEES_TOLERANCE, NEES_WINDOWS, heading_window_nees, increment_nees
 from stages.odometry.stage import _COV_IDX, COV_COLS, POSE_COLS
 
 F64 = npt.NDArray[np.float64]
@@ -54,6 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("runs_dir", type=Path)
     ap.add_argument("seqs", nargs="+")
     ap.add_argument("--calibrate", nargs="*", default=[], help="runs that choose the factor (not evaluated)")
+    ap.add_argument("--windows", action="store_true", help="also the heading NEES over windows of increments")
     ap.add_argument("--json", type=Path, help="also write the rows here")
     a = ap.parse_args(argv)
     overlap = set(a.seqs) & set(a.calibrate)
@@ -78,6 +81,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {s} | {role} | {st1['increments']} | {st1['mean']} | {st1['median']} | "
               f"{st1['share_below_chi2_95']} | {', '.join(map(str, st1['axis_mean']))} | {sts['mean']} | "
               f"{'yes' if sts['within_tolerance'] else 'no'} |")
+    if a.windows:
+        print("\nheading change over windows of W increments, normalised by the summed increment variances "
+              "(chi-square(1): 1 at every W when the increments' errors are independent):\n")
+        print("| sequence | role | " + " | ".join(f"W = {w}" for w in NEES_WINDOWS) + " |")
+        print("|---|---|" + "---|" * len(NEES_WINDOWS))
+        for row, (s, (est, ref, cov, ok)) in zip(rows, data.items(), strict=True):
+            wn = heading_window_nees(est[:, 2], ref[:, 2], cov[:, 2, 2] * scale, ok)
+            row["heading_window_nees"] = {str(w): round(v, 4) for w, v in wn.items()}
+            print(f"| {s} | {row['role']} | " + " | ".join(f"{v:.2f}" for v in wn.values()) + " |")
     if a.json:
         a.json.write_text("".join(json.dumps(r) + "\n" for r in rows))
     return 0
