@@ -131,9 +131,8 @@ def test_receptive_radius_bounds_the_influence() -> None:
         assert not torch.equal(model(near)[0, c], base)
 
 
-@pytest.mark.parametrize("core", [8, 16])
-def test_tiled_inference_equals_one_pass(core: int) -> None:
-    torch.manual_seed(0)
+def _live_model(seed: int = 0) -> VoxelUNet:
+    torch.manual_seed(seed)
     model = VoxelUNet(VoxelNetConfig(widths=(3, 4, 5), bottom_convs=1, bottom_dilation=2)).eval()
     with torch.no_grad():  # weights that keep the ReLUs alive, so that every layer shapes the output
         for p in model.parameters():
@@ -141,6 +140,12 @@ def test_tiled_inference_equals_one_pass(core: int) -> None:
                 p.normal_(0.0, (2.0 / p[0].numel()) ** 0.5)
             else:
                 p.uniform_(-0.1, 0.3)
+    return model
+
+
+@pytest.mark.parametrize("core", [8, 16])
+def test_tiled_inference_equals_one_pass(core: int) -> None:
+    model = _live_model()
     keys, path = _scene()
     band = Band(radius=2.0, z_below=-1.5, z_above=1.5)
     dom = map_domain(path, RES, band, model.stride())
@@ -157,18 +162,6 @@ def test_tiled_inference_equals_one_pass(core: int) -> None:
     short = predict_tiles(model, keys, path, RES, band, core=core, halo=model.stride())
     c = np.lexsort(short.keys.T)
     assert np.abs(short.probs[c] - one.probs[a]).max() > 1e-6
-
-
-def _live_model(seed: int = 0) -> VoxelUNet:
-    torch.manual_seed(seed)
-    model = VoxelUNet(VoxelNetConfig(widths=(3, 4, 5), bottom_convs=1, bottom_dilation=2)).eval()
-    with torch.no_grad():  # weights that keep the ReLUs alive, so that every layer shapes the output
-        for p in model.parameters():
-            if p.ndim > 1:
-                p.normal_(0.0, (2.0 / p[0].numel()) ** 0.5)
-            else:
-                p.uniform_(-0.1, 0.3)
-    return model
 
 
 def _act(x: torch.Tensor, k: int, mirror: bool, dims: tuple[int, int]) -> torch.Tensor:
