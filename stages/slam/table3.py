@@ -225,6 +225,39 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                       "s/scan)", flush=True)
 
 
+#: the sequences of worlds without walls around the path (RICH-SLAM's weight is weakest there)
+OPEN_WORLDS = ("sim_outdoor_open", "sim_outdoor_open_drift", "coloradar_2_twin", "coloradar_2_twin_drift")
+#: the window of the gain figure: 100 increments, 10 s at the radar's 10 Hz
+GAIN_WINDOW = "100"
+
+
+def read_window_nees(path: Path) -> dict[str, float]:
+    """``{sequence: heading NEES over 10 s windows}`` from the rows of ``stages.odometry.nees --windows --json``."""
+    out: dict[str, float] = {}
+    for i, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            r = json.loads(line)
+            out[r["sequence"]] = float(r["heading_window_nees"][GAIN_WINDOW])
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"{path}:{i}: not a row of stages.odometry.nees --windows ({exc})") from exc
+    return out
+
+
+def gain_points(rows: Sequence[dict[str, Any]], nees: dict[str, float], method: str = "rich_slam"
+                ) -> list[tuple[str, float, list[float], bool]]:
+    """(sequence, window NEES, ``method``'s whole-trajectory yaw RMSE over the odometry's per seed, open world?)
+    for every sequence with both rows and a finite window NEES."""
+    out = []
+    for seq, cells in by_sequence(rows, alignment="whole").items():
+        if "odometry" not in cells or method not in cells or not np.isfinite(nees.get(seq, np.nan)):
+            continue
+        odo = cells["odometry"][0][1]
+        out.append((seq, nees[seq], [yaw / odo for _, yaw in cells[method]], seq in OPEN_WORLDS))
+    return out
+
+
 def by_sequence(rows: Sequence[dict[str, Any]], anchored: bool = False, alignment: Alignment = "paper"
                 ) -> dict[str, dict[str, list[tuple[float, float]]]]:
     """``{sequence: {method: [(position RMSE, yaw RMSE) per seed]}}`` (odometry once): sequences in the rows'
@@ -324,6 +357,9 @@ def main(argv: list[str] | None = None) -> int:
                     "exit (several: one table; a row repeated in a later file replaces the earlier one; cells that "
                     "mix configurations are refused)")
     ap.add_argument("--figure", type=Path, help="with --table: also draw it into this PNG")
+    ap.add_argument("--gain-figure", type=Path, help="with --table and --nees: draw rich_slam's whole-trajectory yaw "
+                    "RMSE over the odometry's against the odometry's heading NEES over 10 s windows into this PNG")
+    ap.add_argument("--nees", type=Path, help="rows of `python -m stages.odometry.nees ... --windows --json`")
     ap.add_argument("--paper", action="store_true", help="with --table: also the ColoRadar twins beside the paper's "
                     "Table III (a line per twin; in the figure, a mark at the paper's value of each method)")
     ap.add_argument("--anchored", action="store_true", help="with --table: also the errors without alignment "
@@ -364,6 +400,23 @@ def main(argv: list[str] | None = None) -> int:
                         title=title)
             os.replace(tmp, a.figure)
             print(f"wrote {a.figure}")
+        if a.gain_figure:
+            if a.nees is None:
+                print("error: --gain-figure needs --nees (rows of stages.odometry.nees --windows --json)",
+                      file=sys.stderr)
+                return 2
+            from stages.evaluate.figures import plot_gain_vs_drift
+
+            try:
+                points = gain_points(rows, read_window_nees(a.nees))
+            except (OSError, ValueError) as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return 2
+            tmp = a.gain_figure.with_name(a.gain_figure.name + ".tmp.png")
+            plot_gain_vs_drift(tmp, points, title="Where the filter helps: rich_slam against its odometry "
+                               "(whole-trajectory alignment; bar: range over seeds)")
+            os.replace(tmp, a.gain_figure)
+            print(f"wrote {a.gain_figure} ({len(points)} sequences)")
         return 0
     try:
         overrides = slam_overrides(a.set)
