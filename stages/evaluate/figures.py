@@ -260,6 +260,11 @@ def plot_gain_vs_drift(path: Path, points: Sequence[tuple[str, float, Sequence[f
     ax.axhline(1.0, color="black", lw=0.8)
     ax.axhline(0.7, color="gray", lw=0.8, ls="--")
     ax.set_xscale("log")
+    ax.set_yscale("log")
+    lo, hi = ax.get_ylim()
+    ticks = [t for t in (0.3, 0.5, 0.7, 1, 1.5, 2, 3, 5, 8, 12) if lo <= t <= hi]
+    ax.set_yticks(ticks, [f"{t:g}" for t in ticks])
+    ax.minorticks_off()
     ax.set_xlabel("odometry heading NEES over 10 s windows (1: its covariance is honest over the window)")
     ax.set_ylabel(f"{label(method)} yaw RMSE / odometry yaw RMSE")
     ax.plot([], [], "o", color=colour(method), label="structured world")
