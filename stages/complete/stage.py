@@ -346,12 +346,13 @@ class CompleteStage(Stage):
             if len(keys) == 0:
                 raise UserError(f"{radar_path}: no radar voxel within the pre-filter band of the trajectory "
                                 f"({self.band(p)}); widen complete.band_* or set complete.prefilter = none")
+        tta = meta.tta if p.tta is None else p.tta
         t0 = time.perf_counter()
         dom = map_domain(traj, res, meta.band, model.stride())
         core = p.tile if p.tile is not None else auto_core(dom)
         with ctx.progress(len(tile_origins(dom, core)), "completing voxel tiles") as advance:
             pred = predict_tiles(model, keys, traj, res, meta.band, core=core, device=device, advance=advance,
-                                 bf16=p.bf16, tta=meta.tta if p.tta is None else p.tta)
+                                 bf16=p.bf16, tta=tta)
         wall = time.perf_counter() - t0
         out = key_centres(completed_keys(pred, meta.threshold, keys if meta.union_radar else None,
                                          meta.union_gate), res)
@@ -364,7 +365,7 @@ class CompleteStage(Stage):
             "resolution": res,
             "device": str(device),
             "bf16": p.bf16,
-            "tta": meta.tta if p.tta is None else p.tta,
+            "tta": tta,
             "checkpoint": str(ckpt.relative_to(PROJECT_ROOT) if ckpt.is_relative_to(PROJECT_ROOT) else ckpt),
             "model_size": f"voxel U-Net {n_parameters(model):,} parameters",
             "n_parameters": n_parameters(model),

@@ -11,7 +11,7 @@ from typing import Any
 
 from pipeline.errors import UserError
 from stages.complete.voxel_grid import CHANNELS, Band
-from stages.complete.voxel_net import MODEL_KIND, VoxelNetConfig, VoxelUNet
+from stages.complete.voxel_net import MODEL_KIND, TTA_SIZES, VoxelNetConfig, VoxelUNet
 
 FORMAT = "radar-pipeline/complete"
 VOXEL_FORMAT_VERSION = "1"
@@ -63,8 +63,8 @@ class VoxelMeta:
             raise UserError(f"{where}: voxel checkpoint format version {d.get('format_version')} is not "
                             f"{VOXEL_FORMAT_VERSION}; retrain it with python -m stages.complete.train_voxel")
         tta = d.get("tta", "1")
-        if tta not in ("1", "2", "4", "8"):
-            raise UserError(f"{where}: tta {tta!r} is not a symmetry count of the lattice (1, 2, 4, 8)")
+        if tta not in {str(n) for n in TTA_SIZES}:
+            raise UserError(f"{where}: tta {tta!r} is not a symmetry count of the lattice {TTA_SIZES}")
         channels = tuple(json.loads(d["channels"]))
         if channels != CHANNELS:
             raise UserError(f"{where}: trained on channels {list(channels)}, this code computes {list(CHANNELS)}")

@@ -115,14 +115,19 @@ SYMMETRIES: tuple[tuple[int, bool], ...] = ((0, False), (0, True), (2, False), (
 TTA_SIZES = (1, 2, 4, 8)
 
 
+def check_tta(tta: int) -> None:
+    """ValueError unless ``tta`` is a symmetry count of :data:`TTA_SIZES`."""
+    if tta not in TTA_SIZES:
+        raise ValueError(f"tta must be one of {TTA_SIZES} (symmetries of the lattice averaged), got {tta}")
+
+
 def symmetric_probability(model: VoxelUNet, x: torch.Tensor, tta: int = 1) -> torch.Tensor:
     """Occupancy probability ``(B, X, Y, Z)`` of input ``x`` ``(B, C, X, Y, Z)``: the mean of the network's
     sigmoid over the first ``tta`` of :data:`SYMMETRIES` (test-time augmentation), each output turned back
     onto the input's lattice. Every input channel is invariant under these maps (occupancy, density, distance
     to and height over the trajectory), so each term is a prediction of the same map. ``tta = 1``: the network
     alone, bit for bit."""
-    if tta not in TTA_SIZES:
-        raise ValueError(f"tta must be one of {TTA_SIZES} (symmetries of the lattice averaged), got {tta}")
+    check_tta(tta)
     if tta == 1:
         return torch.sigmoid(model(x))
     total: torch.Tensor | None = None
@@ -245,8 +250,7 @@ def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float
     BF16; probabilities move by up to about 0.01, so the completed map can change by a few voxels). ``tta``:
     the mean over that many lattice symmetries (:func:`symmetric_probability`), tta times the network's cost.
     """
-    if tta not in TTA_SIZES:
-        raise ValueError(f"tta must be one of {TTA_SIZES} (symmetries of the lattice averaged), got {tta}")
+    check_tta(tta)
     s = model.stride()
     dom = map_domain(trajectory, res, band, s)
     core = core if core is not None else auto_core(dom)

@@ -78,6 +78,7 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
     if only:
         scenes = [s for s in scenes if s in only]
     model = meta = None
+    n_sym = 1  # the symmetries averaged: set with the checkpoint
     heap: AbstractContextManager[None] = nullcontext()
     if checkpoint is not None:
         from stages.complete.voxel_checkpoint import load_voxel_checkpoint
@@ -85,6 +86,7 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
 
         model, meta = load_voxel_checkpoint(checkpoint, device=device)
         heap = reuse_freed_memory()
+        n_sym = meta.tta if tta is None else tta
     if meta is not None and meta.union_radar and meta.union_gate > 0 and meta.union_gate not in gates:
         gates = (*gates, meta.union_gate)
     rows: dict[str, dict[str, dict[str, float]]] = {r: {} for r in (*ROWS, *(gate_row(g) for g in gates))}
@@ -106,7 +108,7 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
                 rk = lattice_keys(trajectory_band(m.radar, m.trajectory, meta.band), res, f"{s} radar map")
                 t0 = time.perf_counter()
                 pred = predict_tiles(model, rk, m.trajectory, res, meta.band, core=core, device=device, bf16=bf16,
-                                     tta=meta.tta if tta is None else tta)
+                                     tta=n_sym)
                 seconds[s] = time.perf_counter() - t0
                 cost["voxels_run"] += pred.n_voxels_run
                 cost["feature_seconds"] += pred.feature_seconds
@@ -128,7 +130,7 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
         out["device"] = device
         out["bf16"] = bf16
         out["threshold"] = meta.threshold if meta else None
-        out["tta"] = (meta.tta if tta is None else tta) if meta else None
+        out["tta"] = n_sym
         out["union"] = {"radar": meta.union_radar, "gate": meta.union_gate} if meta else None
     return out
 
