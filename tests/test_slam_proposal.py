@@ -7,7 +7,7 @@ import pytest
 
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import sample_beams
-from stages.slam.methods import OdometryMotion, SlamConfig, domain_from_trajectory, run_method
+from stages.slam.methods import OdometryMotion, SlamConfig, domain_from_trajectory, fused_estimate, run_method
 from stages.slam.rbpf import MotionNoise, Proposal, YawBias, propagate, weighted_mean_pose
 from stages.slam.se2 import compose, wrap_angle
 from stages.slam.synthetic import make_run
@@ -111,8 +111,11 @@ def test_weighted_mean_stays_on_the_odometry_where_the_weights_say_nothing() -> 
     motion = OdometryMotion(np.tile(np.diag([0.01, 0.01, 0.004]) ** 2, (n, 1, 1)), np.full(n, 0.1))
     cfg = SlamConfig(n_particles=100, workers=0, proposal="odometry_covariance", estimate="weighted_mean")
     r = run_method("rich_slam", run.odometry, [empty] * n, basis, cfg, seed=0, motion=motion)
-    assert set(r.estimates) == {"best_per_scan", "final_best_history", "weighted_mean", "smoothed"}
+    assert set(r.estimates) == {"best_per_scan", "final_best_history", "weighted_mean", "smoothed", "fused"}
     np.testing.assert_array_equal(r.poses, r.estimates["weighted_mean"])
+    # the fused estimate is the smoother's heading fused with the odometry's, the odometry's steps along it
+    np.testing.assert_array_equal(r.estimates["fused"], fused_estimate(run.odometry, r.estimates["smoothed"], motion,
+                                                                       cfg.fusion))
     yaw = {k: np.abs(wrap_angle(v[:, 2] - run.odometry[:, 2])) for k, v in r.estimates.items()}
     spread = 0.004 * np.sqrt(n)  # the particles' heading spread at the end (rad)
     assert yaw["weighted_mean"][-1] < 0.35 * spread  # Monte Carlo error ~ spread / sqrt(100)

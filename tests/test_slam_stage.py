@@ -240,6 +240,21 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
     assert json.loads(rows3[1]["config"])["estimate"] == other
     best = next(r for r in rows2 if r["method"] == "fastslam_grid")
     assert rows3[2]["pos_rmse_m"] == best["pos_rmse_m"]  # the configured estimate's row is the plain run's
+    # --keep saves each row's trajectory; --from-kept computes the fused estimate from the kept smoothed one,
+    # equal to the fused row of the filter run itself
+    keep, out5, out6 = tmp_path / "kept", tmp_path / "t3_kept.jsonl", tmp_path / "t3_fused.jsonl"
+    base5 = [str(tmp_path / "seq_a"), "--methods", "fastslam_grid", "--seeds", "0", "--set", "n_particles=4",
+             "--set", "workers=0", "--set", "fusion_filter_sigma=1.5"]
+    assert table3.main([*base5, "--out", str(out5), "--keep", str(keep)]) == 0
+    kept = list((keep / "seq_a").glob("fastslam_grid_seed0_*.npz"))
+    assert len(kept) == 1 and not list(keep.rglob("*.tmp.npz"))
+    assert table3.main([*base5, "--out", str(out5), "--from-kept", str(keep)]) == 0
+    assert table3.main([*base5, "--out", str(out6), "--estimates", "fused"]) == 0
+    from_kept = next(r for r in map(json.loads, out5.read_text().splitlines()) if r["method"] == "fastslam_grid, fused")
+    in_run = next(r for r in map(json.loads, out6.read_text().splitlines()) if r["method"] == "fastslam_grid, fused")
+    for k in ("pos_rmse_m", "yaw_rmse_deg", "pos_rmse_whole_m", "yaw_rmse_whole_deg"):
+        assert from_kept[k] == pytest.approx(in_run[k], rel=1e-9, abs=1e-12)
+    assert json.loads(from_kept["config"]) == json.loads(in_run["config"])
     # rich_slam_paper reads its trajectory as Algorithm 1 whatever the configured estimate: that is its own row,
     # and only the other estimate gets a row of its own (no copy of the plain row)
     out4 = tmp_path / "t3_paper.jsonl"

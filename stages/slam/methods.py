@@ -20,6 +20,7 @@ from stages.slam.backend import Backend, Device, resolve_device
 from stages.slam.beam_sampling import BeamSamples, to_world
 from stages.slam.delayed_maps import DelayedMaps
 from stages.slam.grid_map import GridModel, GridParticleMaps, make_grid_spec
+from stages.slam.heading_fusion import HeadingFusion, fuse_heading, recompose
 from stages.slam.parallel import ParallelHilbertMaps, submap_factory
 from stages.slam.pose_refinement import PoseRefinement
 from stages.slam.rbpf import (
@@ -46,8 +47,8 @@ PAPER_METHODS = ("rich_slam_paper",)
 #: the paper's endpoint tolerance radius r_e (m, Sec. IV-D2: "we set r_e = 0.25 m"), which ``rich_slam_paper`` keeps
 PAPER_ENDPOINT_TOLERANCE = 0.25
 #: how a filter's trajectory is read from its particles (``SlamConfig.estimate``)
-Estimate = Literal["best_per_scan", "final_best_history", "weighted_mean", "smoothed"]
-ESTIMATES: tuple[Estimate, ...] = ("best_per_scan", "final_best_history", "weighted_mean", "smoothed")
+Estimate = Literal["best_per_scan", "final_best_history", "weighted_mean", "smoothed", "fused"]
+ESTIMATES: tuple[Estimate, ...] = ("best_per_scan", "final_best_history", "weighted_mean", "smoothed", "fused")
 ProposalKind = Literal["odometry_covariance", "gmapping"]
 #: methods whose particles are refined against their own maps before weighting (pose_refinement.py)
 REFINED_METHODS = ("rich_slam_refined",)
@@ -124,6 +125,8 @@ class SlamConfig:
     grid_share: float = 0.0
     #: weigh each scan against the map without its last ``map_delay`` scans (:mod:`delayed_maps`; 0: off)
     map_delay: int = 0
+    #: the error models of the ``fused`` estimate (:mod:`heading_fusion`)
+    fusion: HeadingFusion = field(default_factory=HeadingFusion)
 
     def for_method(self, method: str) -> SlamConfig:
         """The configuration a method runs with: ``rich_slam_paper`` (:data:`PAPER_METHODS`) is the paper's
@@ -340,6 +343,11 @@ def run_method(
                 close()
     estimates = {"best_per_scan": h.best_trajectory(), "final_best_history": h.final_best_history(),
                  "weighted_mean": h.mean_trajectory(), "smoothed": h.smoothed_trajectory()}
+    if motion is not None:
+        estimates["fused"] = fused_estimate(odometry, estimates["smoothed"], motion, cfg.fusion)
+    elif cfg.estimate == "fused":
+        raise ValueError(f"{method}: estimate = fused needs the odometry's increment covariance (odometry stage v4); "
+                         "rerun `pipeline run odometry --force` or set slam.estimate = smoothed")
     poses = estimates[cfg.estimate]
     return MethodResult(
         method, poses, np.asarray(h.n_eff), time.perf_counter() - t0, int(np.sum(h.resampled)),
@@ -348,6 +356,13 @@ def run_method(
         np.asarray(h.yaw_bias) if proposal.bias is not None else None, estimates,
         *_submap_counts(maps),
     )
+
+
+def fused_estimate(odometry: F64, smoothed: F64, motion: OdometryMotion, model: HeadingFusion) -> F64:
+    """The ``fused`` estimate: the smoother's heading fused with the odometry's (:func:`heading_fusion.fuse_heading`,
+    with the odometry's per-scan increment yaw variances), the odometry's increments composed along it."""
+    correction, _ = fuse_heading(np.cumsum(motion.dt), odometry[:, 2], smoothed[:, 2], motion.cov[:, 2, 2], model)
+    return recompose(odometry, correction)
 
 
 def _submap_counts(maps: Any) -> tuple[int, int]:

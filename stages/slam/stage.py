@@ -12,6 +12,7 @@ Hilbert methods, else a Hilbert map built along its trajectory. Units: see READM
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -30,6 +31,7 @@ from stages.slam.backend import resolve_device
 from stages.slam.beam_sampling import BeamSamples, radar_to_body_2d, sample_beams, to_world
 from stages.slam.divergence import heading_deviation
 from stages.slam.grid_map import GridModel
+from stages.slam.heading_fusion import HeadingFusion
 from stages.slam.methods import (
     HILBERT_METHODS,
     METHODS,
@@ -191,7 +193,16 @@ class SlamParams(StageParams):
         "smoothed", description="trajectory: the largest-weight particle at each scan (Algorithm 1), the "
         "final best particle's history, the weighted mean pose at each scan (x, y arithmetic, yaw circular), or "
         "the smoothed mean (the final particles' ancestors with the final weights: uses the later scans too; "
-        "stages/slam/README.md); rich_slam_paper: always the first")
+        "stages/slam/README.md), or that smoothed heading fused with the odometry's by the fusion_* error models "
+        "(the odometry's increments composed along it); rich_slam_paper: always the first")
+    fusion_bias_sigma0: float = Field(0.003, ge=0, description="estimate = fused: initial std of the odometry's "
+                                      "unmodelled yaw-rate bias, rad/s")
+    fusion_bias_walk: float = Field(3e-4, ge=0, description="estimate = fused: random-walk density of that bias, "
+                                    "rad/s/sqrt(s)")
+    fusion_filter_sigma: float = Field(8.0, gt=0, description="estimate = fused: stationary std of the filter's "
+                                       "heading error, deg")
+    fusion_filter_tau: float = Field(100.0, gt=0, description="estimate = fused: correlation time of the filter's "
+                                     "heading error, s")
     # -- FastSLAM grid baseline
     grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
     grid_l_occ: float = Field(0.85, gt=0, description="fastslam_grid log-odds added at an endpoint cell")
@@ -289,6 +300,9 @@ class SlamParams(StageParams):
             free_weight=self.free_weight, endpoint_noise_variance=self.endpoint_noise_variance,
             outlier=self.outlier, grid_share=self.grid_share, map_delay=self.map_delay,
             support_variance=None if self.common_support is None else self.common_support * self.signal_variance,
+            fusion=HeadingFusion(bias_sigma0=self.fusion_bias_sigma0, bias_walk=self.fusion_bias_walk,
+                                 filter_sigma=math.radians(self.fusion_filter_sigma),
+                                 filter_tau=self.fusion_filter_tau),
         )
 
 
@@ -347,7 +361,9 @@ class SlamStage(Stage):
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
                                   f"s/scan), {res.resampled} resamplings[/]")
                 if m != "odometry":
-                    dev = heading_deviation(odo, res.poses, inc_cov)
+                    # the filter's own heading: the fused estimate leans on the odometry and would hide a divergence
+                    own = res.estimates.get("smoothed", res.poses) if p.estimate == "fused" else res.poses
+                    dev = heading_deviation(odo, own, inc_cov)
                     ctx.stats["methods"][m]["heading_deviation_sigmas"] = round(dev.sigmas, 2)
                     if dev.sigmas > p.deviation_warn_sigmas:
                         ctx.warn(f"{m}'s heading left the odometry's by {dev.degrees:.1f} deg at scan "

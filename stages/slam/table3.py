@@ -44,7 +44,7 @@ from stages.evaluate.rich_slam_paper import (
 from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, evaluate_trajectory_whole, quat_to_yaw
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.methods import ESTIMATES, METHODS, OdometryMotion, domain_from_trajectory, run_method
+from stages.slam.methods import ESTIMATES, METHODS, OdometryMotion, domain_from_trajectory, fused_estimate, run_method
 from stages.slam.stage import SlamParams, beam_samples_by_scan, read_odometry_file
 from stages.slam.unit_study import read_run_folder
 
@@ -181,9 +181,10 @@ def estimate_label(method: str, estimate: str, configured: str) -> str:
 
 
 def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], overrides: dict[str, Any],
-        out: Path, estimates: Sequence[str] = ()) -> None:
+        out: Path, estimates: Sequence[str] = (), keep: Path | None = None) -> None:
     """Append a row per (run, method, seed) not yet in ``out``; ``estimates``: also a row for each of these
-    trajectory estimates of the same filter run (``methods.ESTIMATES``; labelled by :func:`estimate_label`)."""
+    trajectory estimates of the same filter run (``methods.ESTIMATES``; labelled by :func:`estimate_label`);
+    ``keep``: also save each row's trajectory there (:func:`save_trajectory`)."""
     p = SlamParams(**overrides)
     config = json.dumps(overrides, sort_keys=True)
     done = done_keys(out)
@@ -219,10 +220,78 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                 if anchored:  # beside the Table III protocol: no alignment (every filter starts at the anchor)
                     row["pos_rmse_anchored_m"], row["yaw_rmse_anchored_deg"] = anchored_errors(
                         t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
+                if keep is not None:
+                    save_trajectory(keep, run_dir.name, label, s, row_config, t_ns, est, truth)
                 append_row(out, row)
                 print(f"{run_dir.name} {label} seed {s}: whole {w.pos_rmse_m:.3f} m / {w.yaw_rmse_deg:.2f} deg, "
                       f"paper protocol {e.pos_rmse_m:.3f} m / {e.yaw_rmse_deg:.2f} deg ({row['s_per_scan']:.3f} "
                       "s/scan)", flush=True)
+
+
+def trajectory_file(keep: Path, seq: str, label: str, seed: int, config: str) -> Path:
+    """Where :func:`save_trajectory` puts a row's trajectory: one file per (sequence, label, seed, config)."""
+    import hashlib
+
+    tag = hashlib.sha1(config.encode()).hexdigest()[:8]
+    return keep / seq / f"{label.replace(', ', '__')}_seed{seed}_{tag}.npz"
+
+
+def save_trajectory(keep: Path, seq: str, label: str, seed: int, config: str, t_ns: npt.NDArray[np.int64],
+                    est: F64, truth: Truth) -> Path:
+    """Save a row's trajectory (scan stamps, x, y, yaw) with the ground truth and the row's config, written to
+    a temporary name and renamed, so that estimators can be studied after the filter run."""
+    path = trajectory_file(keep, seq, label, seed, config)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, t_ns=t_ns, pose=est, truth_t_ns=truth[0], truth_xy=truth[1], truth_yaw=truth[2],
+             config=np.array(config), label=np.array(label), seed=np.array(seed))
+    os.replace(tmp, path)
+    return path
+
+
+def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any], out: Path,
+                    methods: Sequence[str] = ("rich_slam", "fastslam_grid")) -> int:
+    """Rows of the ``fused`` estimate computed from kept ``smoothed`` trajectories (:func:`save_trajectory`)
+    without running the filters again: the fusion reads only the smoother's trajectory, the odometry and its
+    covariance (:func:`methods.fused_estimate`), so the row equals the one ``--estimates fused`` writes in the
+    filter run. ``overrides`` are the fusion's (and the kept run's) slam parameters. Returns the rows written."""
+
+    p = SlamParams(**overrides)
+    done = done_keys(out)
+    written = 0
+    for run_dir in runs:
+        for m in methods:
+            for path in sorted((keep / run_dir.name).glob(f"{m}_seed*.npz")):
+                kept = np.load(path)
+                base = json.loads(str(kept["config"]))
+                if str(kept["label"]) != m or base.get("estimate", p.estimate) != "smoothed":
+                    continue
+                if any(k in base and base[k] != v for k, v in overrides.items()):
+                    continue
+                fusion_keys = {k: v for k, v in overrides.items() if k.startswith("fusion_")}
+                config = json.dumps({**base, **fusion_keys, "estimate": "fused"}, sort_keys=True)
+                seed = int(kept["seed"])
+                label = estimate_label(m, "fused", "smoothed")
+                if (run_dir.name, label, seed, config) in done:
+                    continue
+                _scans, t_ns, odo, cov = read_odometry_file(run_dir / "odometry" / "odometry.parquet", run_dir.name)
+                if not np.array_equal(t_ns, kept["t_ns"]):
+                    raise ValueError(f"{path}: its scan stamps are not those of {run_dir}/odometry; keep the "
+                                     "trajectories of this odometry again")
+                motion = OdometryMotion(cov, np.r_[0.0, np.diff(t_ns) * 1e-9])
+                model = SlamParams(**{**base, **fusion_keys}).config().fusion
+                est = np.asarray(fused_estimate(odo, kept["pose"], motion, model), np.float64)
+                truth: Truth = (kept["truth_t_ns"], kept["truth_xy"], kept["truth_yaw"])
+                e = evaluate_trajectory(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2], n_align=100)
+                w = evaluate_trajectory_whole(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
+                append_row(out, {"seq": run_dir.name, "method": label, "seed": seed, "config": config,
+                                 "pos_rmse_m": e.pos_rmse_m, "yaw_rmse_deg": e.yaw_rmse_deg,
+                                 "pos_rmse_whole_m": w.pos_rmse_m, "yaw_rmse_whole_deg": w.yaw_rmse_deg,
+                                 "scans": len(odo), "from_kept": path.name})
+                written += 1
+                print(f"{run_dir.name} {label} seed {seed}: whole {w.pos_rmse_m:.3f} m / {w.yaw_rmse_deg:.2f} deg, "
+                      f"paper protocol {e.pos_rmse_m:.3f} m / {e.yaw_rmse_deg:.2f} deg (from {path.name})", flush=True)
+    return written
 
 
 #: the sequences of worlds without walls around the path (RICH-SLAM's weight is weakest there)
@@ -353,6 +422,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("table3.jsonl"))
     ap.add_argument("--estimates", default="", help="comma-separated trajectory estimates (" + ", ".join(ESTIMATES)
                     + ") written as extra rows '<method>, <estimate>' from the same filter run")
+    ap.add_argument("--keep", type=Path, help="also save each row's trajectory (and the ground truth) in this "
+                    "folder, one .npz per row: <keep>/<seq>/<method>_seed<S>_<config hash>.npz")
+    ap.add_argument("--from-kept", type=Path, help="instead of running the filters: rows of the fused estimate "
+                    "from the smoothed trajectories kept in this folder (--keep), with the --set fusion_* models")
     ap.add_argument("--table", type=Path, nargs="+", help="print the markdown table of these results files and "
                     "exit (several: one table; a row repeated in a later file replaces the earlier one; cells that "
                     "mix configurations are refused)")
@@ -426,11 +499,19 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         ap.error(f"{missing[0]}: no odometry/odometry.parquet; run `pipeline run odometry --seq "
                  f"{missing[0].name}` first")
+    if a.from_kept is not None:
+        try:
+            written = fused_from_kept(a.runs, a.from_kept, overrides, a.out, a.methods.split(","))
+        except (OSError, ValueError, KeyError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        print(f"{written} fused rows from {a.from_kept}")
+        return 0
     estimates = [e for e in a.estimates.split(",") if e]
     unknown = [e for e in estimates if e not in ESTIMATES]
     if unknown:
         ap.error(f"--estimates: unknown {unknown[0]!r}; one of {', '.join(ESTIMATES)}")
-    run(a.runs, a.methods.split(","), [int(s) for s in a.seeds.split(",")], overrides, a.out, estimates)
+    run(a.runs, a.methods.split(","), [int(s) for s in a.seeds.split(",")], overrides, a.out, estimates, a.keep)
     return 0
 
 

@@ -1,0 +1,116 @@
+"""The filter's heading fused with the odometry's by a Kalman smoother that knows how each one errs.
+
+The heading difference ``d_k = yaw_filter_k - yaw_odometry_k`` (unwrapped) is modelled as the sum of two
+processes with different spectra:
+
+- ``c``: the odometry's heading error (negated), which grows: a random walk with the odometry's own per-increment
+  yaw variances (times ``increment_scale``) plus an integrated yaw-rate bias ``b`` whose random-walk density is
+  ``bias_walk`` (rad/s/sqrt(s)) and initial std ``bias_sigma0`` (rad/s): what a drifting gyro does;
+- ``w``: the filter's own heading error, which does not grow: a first-order Gauss-Markov process with stationary
+  std ``filter_sigma`` (rad) and correlation time ``filter_tau`` (s): what a weight biased by the local
+  geometry does (it pulls the heading off after a turn and holds it there, stages/slam/README.md stop 40).
+
+The smoothed ``c`` corrects the odometry's heading; the position is the odometry's body-frame increments
+composed along the corrected heading. Where the difference grows like a gyro drift the fused heading follows
+the filter; where it wanders inside ``filter_sigma`` it stays with the odometry. States ``[c, b, w]``, exact
+discretisation of the integrated random walk; a forward Kalman filter and a Rauch-Tung-Striebel pass.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from pydantic import BaseModel, ConfigDict, Field
+
+from stages.slam.se2 import compose, wrap_angle
+
+F64 = npt.NDArray[np.floating[Any]]
+
+
+class HeadingFusion(BaseModel):
+    """The two error models of :mod:`heading_fusion` (SI units, radians). The defaults were chosen on the six
+    calibration runs at 200 particles (stages/slam/README.md, "The fused estimate")."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    increment_scale: float = Field(1.0, gt=0, description="factor on the odometry's per-increment yaw variances")
+    bias_sigma0: float = Field(0.003, ge=0, description="initial std of the odometry's unmodelled yaw-rate bias, rad/s")
+    bias_walk: float = Field(3e-4, ge=0, description="random-walk density of that bias, rad/s/sqrt(s)")
+    filter_sigma: float = Field(0.1396, gt=0, description="stationary std of the filter's heading error, rad")
+    filter_tau: float = Field(100.0, gt=0, description="correlation time of the filter's heading error, s")
+    measurement_sigma: float = Field(1e-3, gt=0, description="white part of the filter's heading error, rad")
+
+
+def fuse_heading(t_s: npt.ArrayLike, yaw_odometry: npt.ArrayLike, yaw_filter: npt.ArrayLike,
+                 increment_var: npt.ArrayLike, model: HeadingFusion) -> tuple[F64, F64]:
+    """Smoothed correction ``c`` of the odometry's heading (rad, per scan) and its std.
+
+    ``increment_var[k]``: the odometry's yaw variance of the increment from scan k-1 to k (index 0 unused)."""
+    t = np.asarray(t_s, np.float64)
+    yo, yf = np.asarray(yaw_odometry, np.float64), np.asarray(yaw_filter, np.float64)
+    var = np.asarray(increment_var, np.float64)
+    n = len(t)
+    if not (len(yo) == len(yf) == len(var) == n) or n == 0:
+        raise ValueError(f"fuse_heading: {n} stamps, {len(yo)} odometry and {len(yf)} filter headings, {len(var)} "
+                         "increment variances: one of each per scan")
+    d = np.unwrap(yf - yo)
+    d = d - d[0]  # both start at the same pose
+    dts = np.r_[0.0, np.diff(t)]
+    if np.any(dts < 0):
+        raise ValueError("fuse_heading: the stamps go backwards")
+    H = np.array([1.0, 0.0, 1.0])
+    r = model.measurement_sigma ** 2
+    xs_f = np.empty((n, 3))
+    ps_f = np.empty((n, 3, 3))
+    xs_p = np.empty((n, 3))
+    ps_p = np.empty((n, 3, 3))
+    fs = np.empty((n, 3, 3))
+    x = np.zeros(3)
+    p = np.diag([1e-12, model.bias_sigma0 ** 2 + 1e-18, 1e-12])
+    qb = model.bias_walk ** 2
+    for k in range(n):
+        if k > 0:
+            dt = dts[k]
+            phi = np.exp(-dt / model.filter_tau)
+            f = np.array([[1.0, -dt, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, phi]])
+            q = np.zeros((3, 3))
+            q[0, 0] = qb * dt ** 3 / 3 + model.increment_scale * var[k]
+            q[0, 1] = q[1, 0] = -qb * dt ** 2 / 2
+            q[1, 1] = qb * dt
+            q[2, 2] = model.filter_sigma ** 2 * (1 - phi * phi)
+            x = f @ x
+            p = f @ p @ f.T + q
+        else:
+            f = np.eye(3)
+        fs[k], xs_p[k], ps_p[k] = f, x, p
+        s = H @ p @ H + r
+        g = p @ H / s
+        x = x + g * (d[k] - H @ x)
+        p = p - np.outer(g, H @ p)
+        p = 0.5 * (p + p.T)
+        xs_f[k], ps_f[k] = x, p
+    xs = xs_f.copy()
+    ps = ps_f.copy()
+    for k in range(n - 2, -1, -1):
+        a = ps_f[k] @ fs[k + 1].T @ np.linalg.inv(ps_p[k + 1])
+        xs[k] = xs_f[k] + a @ (xs[k + 1] - xs_p[k + 1])
+        ps[k] = ps_f[k] + a @ (ps[k + 1] - ps_p[k + 1]) @ a.T
+    return xs[:, 0], np.sqrt(np.maximum(ps[:, 0, 0], 0.0))
+
+
+def recompose(odometry: npt.ArrayLike, correction: npt.ArrayLike) -> F64:
+    """The odometry's body-frame increments composed along its heading plus ``correction`` (poses ``(n, 3)``)."""
+    odo = np.asarray(odometry, np.float64)
+    c = np.asarray(correction, np.float64)
+    yaw = odo[:, 2] + c
+    dxy = np.diff(odo[:, :2], axis=0)
+    cy, sy = np.cos(odo[:-1, 2]), np.sin(odo[:-1, 2])
+    body = np.stack([cy * dxy[:, 0] + sy * dxy[:, 1], -sy * dxy[:, 0] + cy * dxy[:, 1]], 1)
+    out = np.empty_like(odo)
+    out[0] = odo[0, 0], odo[0, 1], wrap_angle(yaw[0])
+    steps = compose(np.c_[np.zeros((len(body), 2)), yaw[:-1]], np.c_[body, np.zeros(len(body))])[:, :2]
+    out[1:, :2] = odo[0, :2] + np.cumsum(steps, axis=0)
+    out[1:, 2] = wrap_angle(yaw[1:])
+    return out
