@@ -52,12 +52,12 @@ def test_a_drifting_gyro_is_followed_and_a_wandering_filter_is_not() -> None:
     model = HeadingFusion(bias_sigma0=0.01, bias_walk=1e-4, filter_sigma=np.deg2rad(2.0), filter_tau=30.0)
     w = _ou(rng, np.deg2rad(2.0), 30.0)
     drift = 0.005 * t
-    c, sd = fuse_heading(t, odo[:, 2], odo[:, 2] + drift + w, var, model)
+    c, sd, _ = fuse_heading(t, odo[:, 2], odo[:, 2] + drift + w, var, model)
     rms = float(np.sqrt(np.mean((c - drift) ** 2)))
     assert rms < 0.8 * float(np.sqrt(np.mean(w ** 2)))  # better than the filter alone
     assert rms < 0.05 * float(np.sqrt(np.mean(drift ** 2)))  # and far better than the odometry
     assert np.all(sd > 0)
-    c0, _ = fuse_heading(t, odo[:, 2], odo[:, 2] + w, var, HeadingFusion(
+    c0, _, _ = fuse_heading(t, odo[:, 2], odo[:, 2] + w, var, HeadingFusion(
         bias_sigma0=5e-5, bias_walk=1e-6, filter_sigma=np.deg2rad(2.0), filter_tau=30.0))
     assert float(np.sqrt(np.mean(c0 ** 2))) < 0.5 * float(np.sqrt(np.mean(w ** 2)))
 
@@ -67,3 +67,21 @@ def test_bad_input_is_refused() -> None:
         fuse_heading(np.arange(3.0), np.zeros(3), np.zeros(2), np.zeros(3), HeadingFusion())
     with pytest.raises(ValueError, match="backwards"):
         fuse_heading(np.array([0.0, 2.0, 1.0]), np.zeros(3), np.zeros(3), np.zeros(3), HeadingFusion())
+
+
+def test_a_jump_of_the_filter_is_its_own_error_not_the_odometrys() -> None:
+    """The filter's heading steps by 15 deg within one scan near the end (a lineage switch); the odometry is
+    right. With the gate the step goes to the filter's error and the correction stays near zero; without it the
+    smoother bends the odometry's heading before the step to explain it."""
+    rng = np.random.default_rng(3)
+    t = np.arange(N) * DT
+    odo = _odometry(rng)
+    yaw_filter = odo[:, 2] + _ou(rng, np.deg2rad(0.5), 30.0)
+    yaw_filter[-200:] += np.deg2rad(15.0)
+    var = np.full(N, 1e-7)
+    gated = fuse_heading(t, odo[:, 2], yaw_filter, var, HeadingFusion())
+    assert gated.jumps >= 1
+    assert np.degrees(np.abs(gated.correction)).max() < 2.0
+    free = fuse_heading(t, odo[:, 2], yaw_filter, var, HeadingFusion(jump_gate=0.0))
+    assert free.jumps == 0
+    assert np.degrees(np.abs(free.correction)).max() > 2 * np.degrees(np.abs(gated.correction)).max()

@@ -114,8 +114,9 @@ def test_weighted_mean_stays_on_the_odometry_where_the_weights_say_nothing() -> 
     assert set(r.estimates) == {"best_per_scan", "final_best_history", "weighted_mean", "smoothed", "fused"}
     np.testing.assert_array_equal(r.poses, r.estimates["weighted_mean"])
     # the fused estimate is the smoother's heading fused with the odometry's, the odometry's steps along it
-    np.testing.assert_array_equal(r.estimates["fused"], fused_estimate(run.odometry, r.estimates["smoothed"], motion,
-                                                                       cfg.fusion))
+    fused, jumps = fused_estimate(run.odometry, r.estimates["smoothed"], motion, cfg.fusion)
+    np.testing.assert_array_equal(r.estimates["fused"], fused)
+    assert r.fusion_jumps == jumps
     yaw = {k: np.abs(wrap_angle(v[:, 2] - run.odometry[:, 2])) for k, v in r.estimates.items()}
     spread = 0.004 * np.sqrt(n)  # the particles' heading spread at the end (rad)
     assert yaw["weighted_mean"][-1] < 0.35 * spread  # Monte Carlo error ~ spread / sqrt(100)

@@ -18,7 +18,7 @@ discretisation of the integrated random walk; a forward Kalman filter and a Rauc
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -41,13 +41,26 @@ class HeadingFusion(BaseModel):
     filter_sigma: float = Field(0.1396, gt=0, description="stationary std of the filter's heading error, rad")
     filter_tau: float = Field(100.0, gt=0, description="correlation time of the filter's heading error, s")
     measurement_sigma: float = Field(1e-3, gt=0, description="white part of the filter's heading error, rad")
+    jump_gate: float = Field(5.0, ge=0, description="a heading difference further than this many predicted sigmas "
+                             "from the prediction is a jump of the filter's own error, taken by it alone (0: off)")
+
+
+class FusedHeading(NamedTuple):
+    """:func:`fuse_heading`'s result."""
+
+    correction: F64  # (n,) smoothed c: add to the odometry's heading (rad)
+    std: F64  # (n,) its standard deviation (rad)
+    jumps: int  # scans where the filter's heading jumped past ``jump_gate`` (taken by its own error)
 
 
 def fuse_heading(t_s: npt.ArrayLike, yaw_odometry: npt.ArrayLike, yaw_filter: npt.ArrayLike,
-                 increment_var: npt.ArrayLike, model: HeadingFusion) -> tuple[F64, F64]:
-    """Smoothed correction ``c`` of the odometry's heading (rad, per scan) and its std.
+                 increment_var: npt.ArrayLike, model: HeadingFusion) -> FusedHeading:
+    """Smoothed correction ``c`` of the odometry's heading (rad, per scan), its std and the filter's jumps.
 
-    ``increment_var[k]``: the odometry's yaw variance of the increment from scan k-1 to k (index 0 unused)."""
+    ``increment_var[k]``: the odometry's yaw variance of the increment from scan k-1 to k (index 0 unused). A
+    difference further than ``jump_gate`` predicted sigmas from its prediction (the filter switched lineage or
+    diverged within a scan, which neither error model does) is given to the filter's error alone: that scan adds
+    the innovation's square to its variance before the update (a gated, adaptive process noise)."""
     t = np.asarray(t_s, np.float64)
     yo, yf = np.asarray(yaw_odometry, np.float64), np.asarray(yaw_filter, np.float64)
     var = np.asarray(increment_var, np.float64)
@@ -70,6 +83,7 @@ def fuse_heading(t_s: npt.ArrayLike, yaw_odometry: npt.ArrayLike, yaw_filter: np
     x = np.zeros(3)
     p = np.diag([1e-12, model.bias_sigma0 ** 2 + 1e-18, 1e-12])
     qb = model.bias_walk ** 2
+    jumps = 0
     for k in range(n):
         if k > 0:
             dt = dts[k]
@@ -84,8 +98,15 @@ def fuse_heading(t_s: npt.ArrayLike, yaw_odometry: npt.ArrayLike, yaw_filter: np
             p = f @ p @ f.T + q
         else:
             f = np.eye(3)
-        fs[k], xs_p[k], ps_p[k] = f, x, p
         s = H @ p @ H + r
+        nu = d[k] - H @ x
+        if model.jump_gate > 0 and nu * nu > model.jump_gate ** 2 * s:
+            # the filter's heading jumped (a lineage switch, a divergence): its own error takes the step
+            p = p.copy()
+            p[2, 2] += nu * nu
+            s = H @ p @ H + r
+            jumps += 1
+        fs[k], xs_p[k], ps_p[k] = f, x, p
         g = p @ H / s
         x = x + g * (d[k] - H @ x)
         p = p - np.outer(g, H @ p)
@@ -97,7 +118,7 @@ def fuse_heading(t_s: npt.ArrayLike, yaw_odometry: npt.ArrayLike, yaw_filter: np
         a = ps_f[k] @ fs[k + 1].T @ np.linalg.inv(ps_p[k + 1])
         xs[k] = xs_f[k] + a @ (xs[k + 1] - xs_p[k + 1])
         ps[k] = ps_f[k] + a @ (ps[k + 1] - ps_p[k + 1]) @ a.T
-    return xs[:, 0], np.sqrt(np.maximum(ps[:, 0, 0], 0.0))
+    return FusedHeading(xs[:, 0], np.sqrt(np.maximum(ps[:, 0, 0], 0.0)), jumps)
 
 
 def recompose(odometry: npt.ArrayLike, correction: npt.ArrayLike) -> F64:

@@ -204,6 +204,8 @@ class MethodResult:
     submaps_opened: int = 0
     #: scans weighed against a closed submap (``submap_keep_closed``: loop closures)
     submap_revisits: int = 0
+    #: scans where the fused estimate found the filter's heading jumping (:func:`heading_fusion.fuse_heading`)
+    fusion_jumps: int = 0
 
 
 def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]:
@@ -343,8 +345,9 @@ def run_method(
                 close()
     estimates = {"best_per_scan": h.best_trajectory(), "final_best_history": h.final_best_history(),
                  "weighted_mean": h.mean_trajectory(), "smoothed": h.smoothed_trajectory()}
+    fusion_jumps = 0
     if motion is not None:
-        estimates["fused"] = fused_estimate(odometry, estimates["smoothed"], motion, cfg.fusion)
+        estimates["fused"], fusion_jumps = fused_estimate(odometry, estimates["smoothed"], motion, cfg.fusion)
     elif cfg.estimate == "fused":
         raise ValueError(f"{method}: estimate = fused needs the odometry's increment covariance (odometry stage v4); "
                          "rerun `pipeline run odometry --force` or set slam.estimate = smoothed")
@@ -354,15 +357,17 @@ def run_method(
         np.asarray(h.particles), best_map.get("theta"), best_map.get("cov"),
         form if method in HILBERT_METHODS else "", device,
         np.asarray(h.yaw_bias) if proposal.bias is not None else None, estimates,
-        *_submap_counts(maps),
+        *_submap_counts(maps), fusion_jumps,
     )
 
 
-def fused_estimate(odometry: F64, smoothed: F64, motion: OdometryMotion, model: HeadingFusion) -> F64:
+def fused_estimate(odometry: F64, smoothed: F64, motion: OdometryMotion, model: HeadingFusion
+                   ) -> tuple[F64, int]:
     """The ``fused`` estimate: the smoother's heading fused with the odometry's (:func:`heading_fusion.fuse_heading`,
-    with the odometry's per-scan increment yaw variances), the odometry's increments composed along it."""
-    correction, _ = fuse_heading(np.cumsum(motion.dt), odometry[:, 2], smoothed[:, 2], motion.cov[:, 2, 2], model)
-    return recompose(odometry, correction)
+    with the odometry's per-scan increment yaw variances), the odometry's increments composed along it; and the
+    number of scans where the filter's heading jumped (``HeadingFusion.jump_gate``)."""
+    fused = fuse_heading(np.cumsum(motion.dt), odometry[:, 2], smoothed[:, 2], motion.cov[:, 2, 2], model)
+    return recompose(odometry, fused.correction), fused.jumps
 
 
 def _submap_counts(maps: Any) -> tuple[int, int]:

@@ -203,6 +203,8 @@ class SlamParams(StageParams):
                                        "heading error, deg")
     fusion_filter_tau: float = Field(100.0, gt=0, description="estimate = fused: correlation time of the filter's "
                                      "heading error, s")
+    fusion_jump_gate: float = Field(5.0, ge=0, description="estimate = fused: a heading step of the filter past "
+                                    "this many predicted sigmas is its own error's jump (0: off)")
     # -- FastSLAM grid baseline
     grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
     grid_l_occ: float = Field(0.85, gt=0, description="fastslam_grid log-odds added at an endpoint cell")
@@ -302,7 +304,7 @@ class SlamParams(StageParams):
             support_variance=None if self.common_support is None else self.common_support * self.signal_variance,
             fusion=HeadingFusion(bias_sigma0=self.fusion_bias_sigma0, bias_walk=self.fusion_bias_walk,
                                  filter_sigma=math.radians(self.fusion_filter_sigma),
-                                 filter_tau=self.fusion_filter_tau),
+                                 filter_tau=self.fusion_filter_tau, jump_gate=self.fusion_jump_gate),
         )
 
 
@@ -357,6 +359,7 @@ class SlamStage(Stage):
                     **({"device": res.device} if m in HILBERT_METHODS else {}),
                     **({"submaps_opened": res.submaps_opened} if res.submaps_opened else {}),
                     **({"submap_revisits": res.submap_revisits} if res.submap_revisits else {}),
+                    **({"fusion_jumps": res.fusion_jumps} if p.estimate == "fused" and m != "odometry" else {}),
                 }
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
                                   f"s/scan), {res.resampled} resamplings[/]")
@@ -365,6 +368,10 @@ class SlamStage(Stage):
                     own = res.estimates.get("smoothed", res.poses) if p.estimate == "fused" else res.poses
                     dev = heading_deviation(odo, own, inc_cov)
                     ctx.stats["methods"][m]["heading_deviation_sigmas"] = round(dev.sigmas, 2)
+                    if p.estimate == "fused" and res.fusion_jumps:
+                        ctx.warn(f"{m}'s heading jumped at {res.fusion_jumps} scan(s) (past slam.fusion_jump_gate "
+                                 f"= {p.fusion_jump_gate} sigma): the fused estimate kept the odometry's heading "
+                                 f"there; compare trajectory_{m}.parquet with trajectory_odometry.parquet")
                     if dev.sigmas > p.deviation_warn_sigmas:
                         ctx.warn(f"{m}'s heading left the odometry's by {dev.degrees:.1f} deg at scan "
                                  f"{int(scans[dev.index])}, {dev.sigmas:.1f} sigma of the odometry's own accumulated "

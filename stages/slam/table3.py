@@ -280,14 +280,15 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
                                      "trajectories of this odometry again")
                 motion = OdometryMotion(cov, np.r_[0.0, np.diff(t_ns) * 1e-9])
                 model = SlamParams(**{**base, **fusion_keys}).config().fusion
-                est = np.asarray(fused_estimate(odo, kept["pose"], motion, model), np.float64)
+                fused, jumps = fused_estimate(odo, kept["pose"], motion, model)
+                est = np.asarray(fused, np.float64)
                 truth: Truth = (kept["truth_t_ns"], kept["truth_xy"], kept["truth_yaw"])
                 e = evaluate_trajectory(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2], n_align=100)
                 w = evaluate_trajectory_whole(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
                 append_row(out, {"seq": run_dir.name, "method": label, "seed": seed, "config": config,
                                  "pos_rmse_m": e.pos_rmse_m, "yaw_rmse_deg": e.yaw_rmse_deg,
                                  "pos_rmse_whole_m": w.pos_rmse_m, "yaw_rmse_whole_deg": w.yaw_rmse_deg,
-                                 "scans": len(odo), "from_kept": path.name})
+                                 "scans": len(odo), "fusion_jumps": jumps, "from_kept": path.name})
                 written += 1
                 print(f"{run_dir.name} {label} seed {seed}: whole {w.pos_rmse_m:.3f} m / {w.yaw_rmse_deg:.2f} deg, "
                       f"paper protocol {e.pos_rmse_m:.3f} m / {e.yaw_rmse_deg:.2f} deg (from {path.name})", flush=True)
