@@ -142,5 +142,5 @@ def test_the_paper_configuration_keeps_eq22_and_the_grid_its_own_exponent() -> N
     assert cfg.for_method("rich_slam") is cfg
     assert cfg.grid_likelihood_exponent == SlamParams().grid_likelihood_exponent
     # the stage's defaults are the calibrated ones, SlamConfig's pure defaults the paper's
-    assert (cfg.proposal, cfg.estimate, cfg.yaw_bias) == ("odometry_covariance", "smoothed", None)
+    assert (cfg.proposal, cfg.estimate, cfg.yaw_bias) == ("odometry_covariance", "fused", None)
     assert SlamConfig().proposal == "gmapping" and SlamConfig().likelihood_exponent == 1.0

@@ -18,6 +18,7 @@ discretisation of the integrated random walk; a forward Kalman filter and a Rauc
 
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -38,7 +39,8 @@ class HeadingFusion(BaseModel):
     increment_scale: float = Field(1.0, gt=0, description="factor on the odometry's per-increment yaw variances")
     bias_sigma0: float = Field(0.003, ge=0, description="initial std of the odometry's unmodelled yaw-rate bias, rad/s")
     bias_walk: float = Field(3e-4, ge=0, description="random-walk density of that bias, rad/s/sqrt(s)")
-    filter_sigma: float = Field(0.1396, gt=0, description="stationary std of the filter's heading error, rad")
+    filter_sigma: float = Field(math.radians(8.0), gt=0,
+                                description="stationary std of the filter's heading error, rad")
     filter_tau: float = Field(100.0, gt=0, description="correlation time of the filter's heading error, s")
     measurement_sigma: float = Field(1e-3, gt=0, description="white part of the filter's heading error, rad")
     jump_gate: float = Field(5.0, ge=0, description="a heading difference further than this many predicted sigmas "
@@ -108,7 +110,7 @@ def fuse_heading(t_s: npt.ArrayLike, yaw_odometry: npt.ArrayLike, yaw_filter: np
             jumps += 1
         fs[k], xs_p[k], ps_p[k] = f, x, p
         g = p @ H / s
-        x = x + g * (d[k] - H @ x)
+        x = x + g * nu
         p = p - np.outer(g, H @ p)
         p = 0.5 * (p + p.T)
         xs_f[k], ps_f[k] = x, p

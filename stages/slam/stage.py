@@ -190,7 +190,7 @@ class SlamParams(StageParams):
                                      "(removes resampling's Monte Carlo drift of the mean; not rich_slam_paper; "
                                      "stages/slam/README.md)")
     estimate: Estimate = Field(
-        "smoothed", description="trajectory: the largest-weight particle at each scan (Algorithm 1), the "
+        "fused", description="trajectory: the largest-weight particle at each scan (Algorithm 1), the "
         "final best particle's history, the weighted mean pose at each scan (x, y arithmetic, yaw circular), or "
         "the smoothed mean (the final particles' ancestors with the final weights: uses the later scans too; "
         "stages/slam/README.md), or that smoothed heading fused with the odometry's by the fusion_* error models "

@@ -221,7 +221,7 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                     row["pos_rmse_anchored_m"], row["yaw_rmse_anchored_deg"] = anchored_errors(
                         t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
                 if keep is not None:
-                    save_trajectory(keep, run_dir.name, label, s, row_config, t_ns, est, truth)
+                    save_trajectory(keep, run_dir.name, label, s, row_config, t_ns, est, truth, est_name)
                 append_row(out, row)
                 print(f"{run_dir.name} {label} seed {s}: whole {w.pos_rmse_m:.3f} m / {w.yaw_rmse_deg:.2f} deg, "
                       f"paper protocol {e.pos_rmse_m:.3f} m / {e.yaw_rmse_deg:.2f} deg ({row['s_per_scan']:.3f} "
@@ -237,14 +237,14 @@ def trajectory_file(keep: Path, seq: str, label: str, seed: int, config: str) ->
 
 
 def save_trajectory(keep: Path, seq: str, label: str, seed: int, config: str, t_ns: npt.NDArray[np.int64],
-                    est: F64, truth: Truth) -> Path:
+                    est: F64, truth: Truth, estimate: str = "") -> Path:
     """Save a row's trajectory (scan stamps, x, y, yaw) with the ground truth and the row's config, written to
     a temporary name and renamed, so that estimators can be studied after the filter run."""
     path = trajectory_file(keep, seq, label, seed, config)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp.npz")
     np.savez(tmp, t_ns=t_ns, pose=est, truth_t_ns=truth[0], truth_xy=truth[1], truth_yaw=truth[2],
-             config=np.array(config), label=np.array(label), seed=np.array(seed))
+             config=np.array(config), label=np.array(label), seed=np.array(seed), estimate=np.array(estimate))
     os.replace(tmp, path)
     return path
 
@@ -261,17 +261,20 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
     written = 0
     for run_dir in runs:
         for m in methods:
-            for path in sorted((keep / run_dir.name).glob(f"{m}_seed*.npz")):
+            for path in sorted((keep / run_dir.name).glob(f"{m}*_seed*.npz")):
                 kept = np.load(path)
                 base = json.loads(str(kept["config"]))
-                if str(kept["label"]) != m or base.get("estimate", p.estimate) != "smoothed":
+                # the kept trajectory's estimate: recorded since it was added, else the row's config or default
+                est_kept = str(kept["estimate"]) if "estimate" in kept.files and str(kept["estimate"]) else \
+                    base.get("estimate", p.estimate)
+                if str(kept["label"]) not in (m, f"{m}, smoothed") or est_kept != "smoothed":
                     continue
                 if any(k in base and base[k] != v for k, v in overrides.items()):
                     continue
                 fusion_keys = {k: v for k, v in overrides.items() if k.startswith("fusion_")}
                 config = json.dumps({**base, **fusion_keys, "estimate": "fused"}, sort_keys=True)
                 seed = int(kept["seed"])
-                label = estimate_label(m, "fused", "smoothed")
+                label = f"{m}, fused"
                 if (run_dir.name, label, seed, config) in done:
                     continue
                 _scans, t_ns, odo, cov = read_odometry_file(run_dir / "odometry" / "odometry.parquet", run_dir.name)
