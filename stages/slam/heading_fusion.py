@@ -25,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import BaseModel, ConfigDict, Field
 
+from stages.odometry.metrics import se2_increments
 from stages.slam.se2 import compose, wrap_angle
 
 F64 = npt.NDArray[np.floating[Any]]
@@ -126,11 +127,8 @@ def fuse_heading(t_s: npt.ArrayLike, yaw_odometry: npt.ArrayLike, yaw_filter: np
 def recompose(odometry: npt.ArrayLike, correction: npt.ArrayLike) -> F64:
     """The odometry's body-frame increments composed along its heading plus ``correction`` (poses ``(n, 3)``)."""
     odo = np.asarray(odometry, np.float64)
-    c = np.asarray(correction, np.float64)
-    yaw = odo[:, 2] + c
-    dxy = np.diff(odo[:, :2], axis=0)
-    cy, sy = np.cos(odo[:-1, 2]), np.sin(odo[:-1, 2])
-    body = np.stack([cy * dxy[:, 0] + sy * dxy[:, 1], -sy * dxy[:, 0] + cy * dxy[:, 1]], 1)
+    yaw = odo[:, 2] + np.asarray(correction, np.float64)
+    body = se2_increments(odo)[1:, :2]
     out = np.empty_like(odo)
     out[0] = odo[0, 0], odo[0, 1], wrap_angle(yaw[0])
     steps = compose(np.c_[np.zeros((len(body), 2)), yaw[:-1]], np.c_[body, np.zeros(len(body))])[:, :2]

@@ -302,6 +302,9 @@ def run_method(
     rng = np.random.default_rng(seed)
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; one of {', '.join(METHODS)}")
+    if cfg.estimate == "fused" and motion is None:  # refused before the filter runs, not after
+        raise ValueError(f"{method}: estimate = fused needs the odometry's increment covariance (odometry stage v4); "
+                         "rerun `pipeline run odometry --force` or set slam.estimate = smoothed")
     proposal = make_proposal(method, cfg, motion, rng)
     form: Literal["information", "covariance"] = "information"
     maps: (GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps | HybridParticleMaps
@@ -348,9 +351,6 @@ def run_method(
     fusion_jumps = 0
     if motion is not None:
         estimates["fused"], fusion_jumps = fused_estimate(odometry, estimates["smoothed"], motion, cfg.fusion)
-    elif cfg.estimate == "fused":
-        raise ValueError(f"{method}: estimate = fused needs the odometry's increment covariance (odometry stage v4); "
-                         "rerun `pipeline run odometry --force` or set slam.estimate = smoothed")
     poses = estimates[cfg.estimate]
     return MethodResult(
         method, poses, np.asarray(h.n_eff), time.perf_counter() - t0, int(np.sum(h.resampled)),

@@ -85,13 +85,35 @@ def load_inputs(run_dir: Path, p: SlamParams
     """Scan times, odometry poses (valid rows, scan order), beam samples, ground truth and the odometry's
     increment covariance and intervals of a run folder."""
     gt, calib, radar = read_run_folder(run_dir)
-    scans, t_ns, poses, cov = read_odometry_file(run_dir / "odometry" / "odometry.parquet", run_dir.name)
-    motion = OdometryMotion(cov, np.r_[0.0, np.diff(t_ns) * 1e-9])
+    scans, t_ns, poses, motion = read_odometry_motion(run_dir)
     xyz = np.stack([radar[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], 1)
     samples = beam_samples_by_scan(radar["scan"].to_numpy().astype(np.int64), xyz, scans, calib, p)
     truth: Truth = (gt["t_ns"].astype(np.int64), np.stack([gt["x"], gt["y"]], 1).astype(np.float64),
                     quat_to_yaw(gt["qx"], gt["qy"], gt["qz"], gt["qw"]))
     return t_ns, poses, samples, truth, motion
+
+
+def read_odometry_motion(run_dir: Path) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F64, OdometryMotion]:
+    """Scan numbers, stamps, poses (valid rows, scan order) and the increment covariance and intervals of a run
+    folder's odometry."""
+    scans, t_ns, poses, cov = read_odometry_file(run_dir / "odometry" / "odometry.parquet", run_dir.name)
+    return scans, t_ns, poses, OdometryMotion(cov, np.r_[0.0, np.diff(t_ns) * 1e-9])
+
+
+def error_fields(t_ns: npt.NDArray[np.int64], est: npt.NDArray[np.float64], truth: Truth) -> dict[str, float]:
+    """A row's errors: the paper's protocol (SE(2) alignment on the first 100 frames) and the whole-trajectory
+    alignment (= evo_ape --align in the plane)."""
+    e = evaluate_trajectory(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2], n_align=100)
+    w = evaluate_trajectory_whole(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
+    return {"pos_rmse_m": e.pos_rmse_m, "yaw_rmse_deg": e.yaw_rmse_deg, "pos_rmse_whole_m": w.pos_rmse_m,
+            "yaw_rmse_whole_deg": w.yaw_rmse_deg}
+
+
+def say_row(row: dict[str, Any], tail: str) -> None:
+    """The progress line of a written row."""
+    print(f"{row['seq']} {row['method']} seed {row['seed']}: whole {row['pos_rmse_whole_m']:.3f} m / "
+          f"{row['yaw_rmse_whole_deg']:.2f} deg, paper protocol {row['pos_rmse_m']:.3f} m / "
+          f"{row['yaw_rmse_deg']:.2f} deg ({tail})", flush=True)
 
 
 def groundtruth_anchored(run_dir: Path) -> bool:
@@ -210,12 +232,8 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                 if (run_dir.name, label, s, row_config) in done:
                     continue
                 est = np.asarray(res.estimates[est_name], np.float64)
-                e = evaluate_trajectory(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2], n_align=100)
-                w = evaluate_trajectory_whole(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
-                row = {"seq": run_dir.name, "method": label, "seed": s,
-                       "config": row_config, "pos_rmse_m": e.pos_rmse_m,
-                       "yaw_rmse_deg": e.yaw_rmse_deg, "pos_rmse_whole_m": w.pos_rmse_m,
-                       "yaw_rmse_whole_deg": w.yaw_rmse_deg, "s_per_scan": seconds / len(odo),
+                row = {"seq": run_dir.name, "method": label, "seed": s, "config": row_config,
+                       **error_fields(t_ns, est, truth), "s_per_scan": seconds / len(odo),
                        "resamplings": res.resampled, "scans": len(odo)}
                 if anchored:  # beside the Table III protocol: no alignment (every filter starts at the anchor)
                     row["pos_rmse_anchored_m"], row["yaw_rmse_anchored_deg"] = anchored_errors(
@@ -223,9 +241,7 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                 if keep is not None:
                     save_trajectory(keep, run_dir.name, label, s, row_config, t_ns, est, truth, est_name)
                 append_row(out, row)
-                print(f"{run_dir.name} {label} seed {s}: whole {w.pos_rmse_m:.3f} m / {w.yaw_rmse_deg:.2f} deg, "
-                      f"paper protocol {e.pos_rmse_m:.3f} m / {e.yaw_rmse_deg:.2f} deg ({row['s_per_scan']:.3f} "
-                      "s/scan)", flush=True)
+                say_row(row, f"{row['s_per_scan']:.3f} s/scan")
 
 
 def trajectory_file(keep: Path, seq: str, label: str, seed: int, config: str) -> Path:
@@ -255,11 +271,12 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
     without running the filters again: the fusion reads only the smoother's trajectory, the odometry and its
     covariance (:func:`methods.fused_estimate`), so the row equals the one ``--estimates fused`` writes in the
     filter run. ``overrides`` are the fusion's (and the kept run's) slam parameters. Returns the rows written."""
-
     p = SlamParams(**overrides)
+    fusion_keys = {k: v for k, v in overrides.items() if k.startswith("fusion_")}
     done = done_keys(out)
     written = 0
     for run_dir in runs:
+        odometry: tuple[npt.NDArray[np.int64], F64, OdometryMotion] | None = None  # read once per run folder
         for m in methods:
             for path in sorted((keep / run_dir.name).glob(f"{m}*_seed*.npz")):
                 kept = np.load(path)
@@ -271,30 +288,26 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
                     continue
                 if any(k in base and base[k] != v for k, v in overrides.items()):
                     continue
-                fusion_keys = {k: v for k, v in overrides.items() if k.startswith("fusion_")}
                 config = json.dumps({**base, **fusion_keys, "estimate": "fused"}, sort_keys=True)
                 seed = int(kept["seed"])
                 label = f"{m}, fused"
                 if (run_dir.name, label, seed, config) in done:
                     continue
-                _scans, t_ns, odo, cov = read_odometry_file(run_dir / "odometry" / "odometry.parquet", run_dir.name)
+                if odometry is None:
+                    odometry = read_odometry_motion(run_dir)[1:]
+                t_ns, odo, motion = odometry
                 if not np.array_equal(t_ns, kept["t_ns"]):
                     raise ValueError(f"{path}: its scan stamps are not those of {run_dir}/odometry; keep the "
                                      "trajectories of this odometry again")
-                motion = OdometryMotion(cov, np.r_[0.0, np.diff(t_ns) * 1e-9])
                 model = SlamParams(**{**base, **fusion_keys}).config().fusion
                 fused, jumps = fused_estimate(odo, kept["pose"], motion, model)
-                est = np.asarray(fused, np.float64)
                 truth: Truth = (kept["truth_t_ns"], kept["truth_xy"], kept["truth_yaw"])
-                e = evaluate_trajectory(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2], n_align=100)
-                w = evaluate_trajectory_whole(t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
-                append_row(out, {"seq": run_dir.name, "method": label, "seed": seed, "config": config,
-                                 "pos_rmse_m": e.pos_rmse_m, "yaw_rmse_deg": e.yaw_rmse_deg,
-                                 "pos_rmse_whole_m": w.pos_rmse_m, "yaw_rmse_whole_deg": w.yaw_rmse_deg,
-                                 "scans": len(odo), "fusion_jumps": jumps, "from_kept": path.name})
+                row = {"seq": run_dir.name, "method": label, "seed": seed, "config": config,
+                       **error_fields(t_ns, np.asarray(fused, np.float64), truth), "scans": len(odo),
+                       "fusion_jumps": jumps, "from_kept": path.name}
+                append_row(out, row)
                 written += 1
-                print(f"{run_dir.name} {label} seed {seed}: whole {w.pos_rmse_m:.3f} m / {w.yaw_rmse_deg:.2f} deg, "
-                      f"paper protocol {e.pos_rmse_m:.3f} m / {e.yaw_rmse_deg:.2f} deg (from {path.name})", flush=True)
+                say_row(row, f"from {path.name}")
     return written
 
 
