@@ -209,7 +209,10 @@ def test_an_imu_noise_set_too_low_is_warned_about(bag: Path, walked: tuple[Path,
     assert share > 0.1
     assert any(f"rejected {ekf['velocity_rejected']} of" in w and "accel_noise_density=0.002" in w
                for w in st["warnings"])
-    assert ekf["recoveries"] >= 1 and any("recovered" in w for w in st["warnings"])
+    # the rejection streaks are either recovered from (and warned) or, their innovations scattered (the stiff
+    # filter's vertical error swings with the steps), kept rejected and counted
+    assert ekf["recoveries"] + ekf["recoveries_declined"] >= 1
+    assert (ekf["recoveries"] == 0) == (not any("recovered" in w for w in st["warnings"]))
 
 
 def test_the_registered_handheld_sequence_uses_a_profile_file() -> None:

@@ -7,7 +7,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from stages.ingest.geometry import pose_matrix
-from stages.odometry.ekf_rio import EkfConfig, EkfResult, EkfRio, find_standstill, radar_moving, run_ekf
+from stages.odometry.ekf_rio import (
+    EkfConfig,
+    EkfResult,
+    EkfRio,
+    find_standstill,
+    innovations_agree,
+    radar_moving,
+    run_ekf,
+)
 from tests.test_filter_scene import circle_run
 from tests.test_ingest_logs import BASE_FROM_IMU
 
@@ -67,7 +75,8 @@ def test_ekf_starts_from_the_standstill() -> None:
     assert np.abs(res.T_world_imu[-1, :3, 3]).max() < 0.05  # and it stays put
 
 
-def _circle(offset_from: int | None, recover_after: int) -> tuple[dict[str, object], np.ndarray, np.ndarray]:
+def _circle(offset_from: int | None, recover_after: int, outliers_from: int | None = None,
+            recover_consistent: bool = True, heading: bool = False) -> tuple[dict[str, object], np.ndarray, np.ndarray]:
     run = circle_run(duration=20.0, seed=0, gyro_noise=1.5e-4, accel_noise=6e-4, clutter=0, ghosts=0)
     sc = run.scene
     scan_t = np.array([t for t, _ in sc.radar], dtype=np.int64)
@@ -75,11 +84,22 @@ def _circle(offset_from: int | None, recover_after: int) -> tuple[dict[str, obje
     vel = run.v_radar + rng.normal(0, 0.02, run.v_radar.shape)
     if offset_from is not None:
         vel[offset_from:, 0] += 0.6  # the radar disagrees with the IMU from here on (e.g. a bad IMU stretch)
+    if outliers_from is not None:
+        # 40 scans of which every other one is a wild, claimed-precise estimate (clutter's own Doppler consensus):
+        # streaks of rejections whose innovations scatter, as at a standstill among clutter
+        bad = np.arange(outliers_from, outliers_from + 40)
+        bad = bad[(bad - outliers_from) % 5 != 4]
+        vel[bad] += rng.uniform(-2.5, 2.5, (len(bad), 3))
     cov = np.tile(np.eye(3) * 0.02 ** 2, (len(scan_t), 1, 1))
     imu_from_radar = np.linalg.inv(pose_matrix(*BASE_FROM_IMU)) @ run.base_from_radar
     res = run_ekf(sc.imu_t, sc.imu[:, :3], sc.imu[:, 3:], scan_t, vel, cov, np.full(len(scan_t), 3),
-                  np.ones(len(scan_t), bool), imu_from_radar, EkfConfig(accel_noise_density=0.02,
-                                                                         recover_after=recover_after))
+                  np.ones(len(scan_t), bool), imu_from_radar,
+                  EkfConfig(accel_noise_density=0.02, recover_after=recover_after,
+                            recover_consistent=recover_consistent))
+    if heading:  # the heading error (deg) at every scan instead of the velocities
+        yaw = np.unwrap(np.arctan2(res.T_world_imu[:, 1, 0], res.T_world_imu[:, 0, 0]))
+        err = np.degrees(yaw - run.speed / run.radius * scan_t * 1e-9)  # the true heading turns at v / r
+        return res.stats, err - err[0], np.zeros(0)
     v_radar_est = np.einsum("ji,sj->si", imu_from_radar[:3, :3],
                             np.einsum("sji,sj->si", res.T_world_imu[:, :3, :3], res.velocity))
     target = run.v_radar.copy()  # what the radar says, without its noise
@@ -101,6 +121,34 @@ def test_recovery_follows_the_radar_instead_of_rejecting_it_forever() -> None:
     stats_off, v_off, _ = _circle(offset_from=100, recover_after=10 ** 6)
     assert stats_off["recoveries"] == 0 and stats_off["velocity_rejected"] > 50
     assert np.abs(v_off[110:, 0] - target[110:, 0]).mean() > base + 0.2
+
+
+def test_scattered_outliers_are_rejected_without_a_recovery() -> None:
+    # streaks of wild ego-velocities (each far from the last) are the radar's outliers, not a filter that is off:
+    # no recovery, so no attitude inflation that lets them into the heading
+    _, err_clean, _ = _circle(offset_from=None, recover_after=3, heading=True)
+    stats, err, _ = _circle(offset_from=None, recover_after=3, outliers_from=60, heading=True)
+    assert stats["recoveries"] == 0 and stats["recoveries_declined"] >= 3 and stats["velocity_rejected"] >= 25
+    assert np.abs(err).max() < np.abs(err_clean).max() + 0.5  # deg (1.6 against 1.4 when written)
+    # the rule off: the same streaks inflate the attitude and the outliers turn the heading
+    stats_off, err_off, _ = _circle(offset_from=None, recover_after=3, outliers_from=60, heading=True,
+                                    recover_consistent=False)
+    assert stats_off["recoveries"] >= 3 and "recoveries_declined" in stats_off
+    assert np.abs(err_off).max() > np.abs(err).max() + 3.0  # (9.1 when written)
+
+
+def test_innovations_agree_on_the_rows_both_have() -> None:
+    S = np.eye(3) * 0.01
+    r3, r2 = np.arange(3), np.arange(2)
+    # consecutive pairs on their common rows: the planar middle one has no z to disagree with
+    same = [(r3, np.array([0.6, 0.0, 0.0]), S), (r2, np.array([0.62, 0.01]), S[:2, :2]),
+            (r3, np.array([0.58, -0.02, 0.8]), S)]
+    assert innovations_agree(same, 0.999)
+    assert not innovations_agree([same[0], same[2]], 0.999)  # side by side, z differs by 0.8 (5.7 sigma)
+    assert not innovations_agree([*same[:2], (r3, np.array([-0.1, 0.0, 0.0]), S)], 0.999)  # x jumps on the last
+    assert innovations_agree([(r3, np.array([0.6, 0.0, 0.0]), S)], 0.999)  # one alone agrees with itself
+    scattered = [(r3, np.array([1.5, -1.0, 0.2]), S), (r3, np.array([-0.9, 1.1, 0.0]), S)]
+    assert not innovations_agree(scattered, 0.999)
 
 
 def _pitched_mount(mount_sigma0: float, level_sigma: float) -> tuple[EkfResult, np.ndarray]:

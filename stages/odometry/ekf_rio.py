@@ -33,7 +33,11 @@ mean specific force over the whole standstill, gyro bias = the mean rate, accele
 (``max(configured, std / sqrt(rate))``); its scans also give zero-rate updates. Recovery: after
 ``recover_after`` velocity updates in a row rejected by the gate, the velocity, attitude and accelerometer
 bias covariances are inflated (``recover_sigma_*``) and the update is tried again, so the filter follows
-the radar again instead of diverging silently; a non-finite state is re-initialised from the radar.
+the radar again instead of diverging silently; a non-finite state is re-initialised from the radar. Only when
+the rejected innovations agree with one another (``recover_consistent``, :func:`innovations_agree`): a filter
+that is off sees the same innovation scan after scan, while a radar whose estimates are outliers (a standstill
+with a handful of static returns among clutter that forms its own Doppler consensus) scatters them, and
+inflating the attitude there only injects the outliers into the heading.
 
 Increment covariance: a clone of the error state at each scan (the pose written there, never corrected
 later) and, with ``actual_*`` noise set, a second covariance propagated with the actual noise and updated with
@@ -43,6 +47,7 @@ suboptimal filter): the estimate keeps the filter's noise, the covariance is tha
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -108,6 +113,9 @@ class EkfConfig:
     recover_sigma_v: float = 0.5
     recover_sigma_attitude: float = np.radians(5.0)
     recover_sigma_accel_bias: float = 0.3
+    #: recover only when the rejected innovations agree with one another (the filter is off, not the radar): each
+    #: pair of consecutive rejected innovations passes the gate on the sum of their covariances
+    recover_consistent: bool = True
     #: prior std of the radar mount's rotation error (rad, each axis); 0: the stated extrinsic is exact (15 states)
     mount_sigma0: float = 0.0
     #: std of a zero vertical-velocity pseudo-measurement at every scan (m/s; 0: none): the platform moves on
@@ -242,6 +250,8 @@ class EkfRio:
         if cfg.actual_gyro_noise_density is not None:
             self._qt[3:6] = cfg.actual_gyro_noise_density ** 2
         self.Pt, self.Ct, self.Pct = self.P.copy(), self.P.copy(), self.P.copy()
+        #: the last update's innovation and its covariance (before the gate)
+        self.last_innovation: tuple[F64, F64] = (np.zeros(0), np.zeros((0, 0)))
 
     def clone(self) -> None:
         """Clone the error state (at a scan): the next :meth:`pose_pair_cov` is of the increment from here."""
@@ -326,6 +336,7 @@ class EkfRio:
     def _correct(self, y: F64, H: F64, Rm: F64, scale_actual: bool = False,
                  only: npt.NDArray[np.intp] | None = None) -> bool:
         S = H @ self.P @ H.T + Rm
+        self.last_innovation = (y, S)
         try:
             Sinv_y = np.linalg.solve(S, y)
         except np.linalg.LinAlgError:
@@ -392,6 +403,25 @@ class EkfRio:
         H = np.zeros((3, self.n))
         H[:, 9:12] = np.eye(3)
         return self._correct(gyro_mean - self.bg, H, np.eye(3) * sigma ** 2)
+
+
+def innovations_agree(rejected: list[tuple[npt.NDArray[np.intp], F64, F64]], probability: float) -> bool:
+    """Whether consecutive rejected velocity innovations ``(rows, y, S)`` agree with one another: the difference
+    of each pair, on the rows both have, inside the chi-square gate of ``probability`` on the sum of their
+    covariances. A filter that is off gives the same innovation scan after scan (recover); a radar
+    whose estimates are outliers (few static returns, clutter that forms a consensus) gives scattered ones."""
+    for (ra, ya, Sa), (rb, yb, Sb) in itertools.pairwise(rejected):
+        common = np.intersect1d(ra, rb)
+        ia, ib = np.searchsorted(ra, common), np.searchsorted(rb, common)
+        d = ya[ia] - yb[ib]
+        C = Sa[np.ix_(ia, ia)] + Sb[np.ix_(ib, ib)]
+        try:
+            d2 = float(d @ np.linalg.solve(C, d))
+        except np.linalg.LinAlgError:
+            return False
+        if d2 > chi2.ppf(probability, df=len(common)):
+            return False
+    return True
 
 
 def gravity_aligned(acc_mean: F64) -> F64:
@@ -464,9 +494,11 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
         R0 = gravity_aligned(f0)
         ekf = EkfRio(cfg, R0, R0 @ v_imu)
     chi_rows = {3: np.arange(3), 2: np.arange(2), 0: np.arange(3)}
-    n_upd = n_rej = n_zaru = n_recover = n_reinit = n_level_rej = 0
+    n_upd = n_rej = n_zaru = n_recover = n_reinit = n_level_rej = n_scattered = 0
     in_row = 0
     recover_t: list[int] = []
+    #: the innovations (rows, y, S) of the rejected velocity updates in the current streak (the last recover_after)
+    rejected_nu: list[tuple[npt.NDArray[np.intp], F64, F64]] = []
     # standstill runs: a zero-rate update needs this many consecutive zero-velocity scans (a slow creep can pass
     # the Doppler zero-velocity test while the platform still turns); scans of the initial standstill count too
     zero = valid & (np.asarray(dims) == 0)
@@ -515,7 +547,12 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
             ok = ekf.update_velocity(vel[s], c, rows, w_k, R_ir, t_ir)
             if not ok:
                 in_row += 1
-                if in_row >= cfg.recover_after:
+                rejected_nu.append((rows, *ekf.last_innovation))
+                del rejected_nu[:-cfg.recover_after]
+                scattered = (in_row >= cfg.recover_after and cfg.recover_consistent
+                             and not innovations_agree(rejected_nu, cfg.gate_probability))
+                n_scattered += int(scattered)
+                if in_row >= cfg.recover_after and not scattered:
                     ekf.inflate(cfg.recover_sigma_v, cfg.recover_sigma_attitude, cfg.recover_sigma_accel_bias)
                     n_recover += 1
                     recover_t.append(int(scan_t[s]))
@@ -524,6 +561,7 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
             if ok:
                 n_upd += 1
                 in_row = 0
+                rejected_nu.clear()
                 out.updated[s] = True
             else:
                 n_rej += 1
@@ -549,6 +587,7 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
     out.T_world_imu[:s0] = out.T_world_imu[s0]
     out.stats = {"start_scan": s0, "velocity_updates": n_upd, "velocity_rejected": n_rej, "zero_rate_updates": n_zaru,
                  "recoveries": n_recover, "reinitialisations": n_reinit, "recovery_t_ns": recover_t,
+                 "recoveries_declined": n_scattered,
                  "level_rejected": n_level_rej,
                  "standstill": still.as_dict() if still is not None else None}
     return out

@@ -85,6 +85,9 @@ class OdometryParams(StageParams):
                                                                   "from the first window, rad/s")
     recover_after: int = Field(3, ge=1, description="velocity updates rejected in a row before the covariance is "
                                                     "inflated and the update retried")
+    recover_consistent: bool = Field(True, description="recover only when the rejected velocity innovations agree "
+                                     "with one another (the filter is off); scattered ones are the radar's outliers "
+                                     "and are only rejected")
     recover_sigma_v: float = Field(0.5, gt=0, description="velocity std after a recovery, m/s")
     recover_sigma_attitude_deg: float = Field(5.0, gt=0, description="attitude std after a recovery, degrees")
     recover_sigma_accel_bias: float = Field(0.3, gt=0, description="accelerometer bias std after a recovery, m/s^2")
@@ -226,7 +229,7 @@ class OdometryStage(Stage):
             standstill_min_s=p.standstill_min_s, standstill_accel_std=p.standstill_accel_std,
             standstill_gyro_std=p.standstill_gyro_std, standstill_max_speed=p.standstill_max_speed,
             standstill_accel_change=p.standstill_accel_change, standstill_gyro_change=p.standstill_gyro_change,
-            recover_after=p.recover_after, recover_sigma_v=p.recover_sigma_v,
+            recover_after=p.recover_after, recover_consistent=p.recover_consistent, recover_sigma_v=p.recover_sigma_v,
             recover_sigma_attitude=np.radians(p.recover_sigma_attitude_deg),
             recover_sigma_accel_bias=p.recover_sigma_accel_bias, actual_accel_noise_density=p.cov_accel_noise_density,
             actual_gyro_noise_density=p.cov_gyro_noise_density, actual_velocity_cov_scale=p.cov_velocity_scale,
@@ -274,6 +277,9 @@ class OdometryStage(Stage):
                      f"in a row (covariance inflated; at {when}{more} s)"
                      + (f", re-initialised {st['reinitialisations']} time(s) from a non-finite state"
                         if st["reinitialisations"] else ""))
+        if st.get("recoveries_declined"):
+            ctx.console.print(f"[dim]odometry: {st['recoveries_declined']} rejection streak(s) of scattered "
+                              f"ego-velocities (radar outliers) kept rejected, not recovered from[/]")
         n_level = st.get("level_rejected", 0)
         if p.level_velocity_sigma > 0 and total and n_level / total > p.reject_warn_share:
             ctx.warn(f"EKF: the level prior (odometry.level_velocity_sigma={p.level_velocity_sigma:g}) was rejected "
