@@ -11,6 +11,7 @@ the errors the maps inherit) and under RICH-SLAM's Table III protocol. Pure func
 from __future__ import annotations
 
 import json
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -131,7 +132,8 @@ def plot_map_vs_trajectory(path: Path, records: Sequence[Mapping[str, Any]], tit
     ax.set_ylabel("CD-l2 against the lidar map (m²)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, ncol=2)
-    ax.set_title(title or "Radar-only maps: map quality against trajectory error", fontsize=10)
+    # a sweep's description can be longer than the axes are wide: wrapped, not clipped
+    ax.set_title(textwrap.fill(title or "Radar-only maps: map quality against trajectory error", 80), fontsize=10)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
