@@ -16,7 +16,7 @@ from stages.odometry.ekf_rio import (
     radar_moving,
     run_ekf,
 )
-from tests.test_filter_scene import circle_run
+from tests.test_filter_scene import CircleRun, circle_run
 from tests.test_ingest_logs import BASE_FROM_IMU
 
 NS = 1_000_000_000
@@ -75,8 +75,9 @@ def test_ekf_starts_from_the_standstill() -> None:
     assert np.abs(res.T_world_imu[-1, :3, 3]).max() < 0.05  # and it stays put
 
 
-def _circle(offset_from: int | None, recover_after: int, outliers_from: int | None = None,
-            recover_consistent: bool = True, heading: bool = False) -> tuple[dict[str, object], np.ndarray, np.ndarray]:
+def _circle_ekf(offset_from: int | None, recover_after: int, outliers_from: int | None = None,
+                recover_consistent: bool = True) -> tuple[EkfResult, CircleRun, np.ndarray, np.ndarray]:
+    """EKF-RIO on a 20 s circle; the result, the run, the scan stamps and imu <- radar."""
     run = circle_run(duration=20.0, seed=0, gyro_noise=1.5e-4, accel_noise=6e-4, clutter=0, ghosts=0)
     sc = run.scene
     scan_t = np.array([t for t, _ in sc.radar], dtype=np.int64)
@@ -85,8 +86,8 @@ def _circle(offset_from: int | None, recover_after: int, outliers_from: int | No
     if offset_from is not None:
         vel[offset_from:, 0] += 0.6  # the radar disagrees with the IMU from here on (e.g. a bad IMU stretch)
     if outliers_from is not None:
-        # 40 scans of which every other one is a wild, claimed-precise estimate (clutter's own Doppler consensus):
-        # streaks of rejections whose innovations scatter, as at a standstill among clutter
+        # 40 scans of which four in every five are a wild, claimed-precise estimate (clutter's own Doppler
+        # consensus): streaks of rejections whose innovations scatter, as at a standstill among clutter
         bad = np.arange(outliers_from, outliers_from + 40)
         bad = bad[(bad - outliers_from) % 5 != 4]
         vel[bad] += rng.uniform(-2.5, 2.5, (len(bad), 3))
@@ -96,16 +97,27 @@ def _circle(offset_from: int | None, recover_after: int, outliers_from: int | No
                   np.ones(len(scan_t), bool), imu_from_radar,
                   EkfConfig(accel_noise_density=0.02, recover_after=recover_after,
                             recover_consistent=recover_consistent))
-    if heading:  # the heading error (deg) at every scan instead of the velocities
-        yaw = np.unwrap(np.arctan2(res.T_world_imu[:, 1, 0], res.T_world_imu[:, 0, 0]))
-        err = np.degrees(yaw - run.speed / run.radius * scan_t * 1e-9)  # the true heading turns at v / r
-        return res.stats, err - err[0], np.zeros(0)
+    return res, run, scan_t, imu_from_radar
+
+
+def _circle(offset_from: int | None, recover_after: int) -> tuple[dict[str, object], np.ndarray, np.ndarray]:
+    """Stats, the estimated radar velocity and what the radar says (without its noise)."""
+    res, run, _, imu_from_radar = _circle_ekf(offset_from, recover_after)
     v_radar_est = np.einsum("ji,sj->si", imu_from_radar[:3, :3],
                             np.einsum("sji,sj->si", res.T_world_imu[:, :3, :3], res.velocity))
     target = run.v_radar.copy()  # what the radar says, without its noise
     if offset_from is not None:
         target[offset_from:, 0] += 0.6
     return res.stats, v_radar_est, target
+
+
+def _circle_heading(outliers_from: int | None = None, recover_consistent: bool = True
+                    ) -> tuple[dict[str, object], np.ndarray]:
+    """Stats and the heading error (deg, from the first scan) with ``recover_after`` 3 and no offset."""
+    res, run, scan_t, _ = _circle_ekf(None, 3, outliers_from, recover_consistent)
+    yaw = np.unwrap(np.arctan2(res.T_world_imu[:, 1, 0], res.T_world_imu[:, 0, 0]))
+    err = np.degrees(yaw - run.speed / run.radius * scan_t * 1e-9)  # the true heading turns at v / r
+    return res.stats, err - err[0]
 
 
 def test_recovery_follows_the_radar_instead_of_rejecting_it_forever() -> None:
@@ -126,13 +138,12 @@ def test_recovery_follows_the_radar_instead_of_rejecting_it_forever() -> None:
 def test_scattered_outliers_are_rejected_without_a_recovery() -> None:
     # streaks of wild ego-velocities (each far from the last) are the radar's outliers, not a filter that is off:
     # no recovery, so no attitude inflation that lets them into the heading
-    _, err_clean, _ = _circle(offset_from=None, recover_after=3, heading=True)
-    stats, err, _ = _circle(offset_from=None, recover_after=3, outliers_from=60, heading=True)
+    _, err_clean = _circle_heading()
+    stats, err = _circle_heading(outliers_from=60)
     assert stats["recoveries"] == 0 and stats["recoveries_declined"] >= 3 and stats["velocity_rejected"] >= 25
     assert np.abs(err).max() < np.abs(err_clean).max() + 0.5  # deg (1.6 against 1.4 when written)
     # the rule off: the same streaks inflate the attitude and the outliers turn the heading
-    stats_off, err_off, _ = _circle(offset_from=None, recover_after=3, outliers_from=60, heading=True,
-                                    recover_consistent=False)
+    stats_off, err_off = _circle_heading(outliers_from=60, recover_consistent=False)
     assert stats_off["recoveries"] >= 3 and "recoveries_declined" in stats_off
     assert np.abs(err_off).max() > np.abs(err).max() + 3.0  # (9.1 when written)
 

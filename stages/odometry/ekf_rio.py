@@ -549,10 +549,10 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
                 in_row += 1
                 rejected_nu.append((rows, *ekf.last_innovation))
                 del rejected_nu[:-cfg.recover_after]
-                scattered = (in_row >= cfg.recover_after and cfg.recover_consistent
-                             and not innovations_agree(rejected_nu, cfg.gate_probability))
-                n_scattered += int(scattered)
-                if in_row >= cfg.recover_after and not scattered:
+                if in_row >= cfg.recover_after and cfg.recover_consistent and not innovations_agree(
+                        rejected_nu, cfg.gate_probability):
+                    n_scattered += 1  # the radar's outliers: kept rejected, no inflation
+                elif in_row >= cfg.recover_after:
                     ekf.inflate(cfg.recover_sigma_v, cfg.recover_sigma_attitude, cfg.recover_sigma_accel_bias)
                     n_recover += 1
                     recover_t.append(int(scan_t[s]))
