@@ -91,3 +91,21 @@ def test_gain_figure_puts_each_sequence_at_its_window_nees(tmp_path: Path, capsy
     bad.write_text('{"sequence": "demo"}\n')
     assert table3.main(["--table", str(rows), "--nees", str(bad), "--gain-figure", str(png)]) == 2
     assert f"{bad}:1: not a row of stages.odometry.nees --windows" in capsys.readouterr().err
+
+
+def test_rows_that_ran_on_another_odometry_are_dropped_when_a_later_file_reruns_it(tmp_path: Path) -> None:
+    """A later file whose odometry row of a sequence differs (the odometry changed) supersedes every row of that
+    sequence in earlier files, including seeds it did not rerun; a sequence whose odometry is unchanged keeps
+    its earlier seeds."""
+    a, b = tmp_path / "a.jsonl", tmp_path / "b.jsonl"
+    a.write_text("\n".join([_row("twin", "odometry", 1, 3.38, {}), _row("twin", "rich_slam", 1, 4.18, {}),
+                            _row("twin", "rich_slam", 2, 4.50, {}), _row("demo", "odometry", 0, 0.87, {}),
+                            _row("demo", "rich_slam", 0, 0.42, {})]) + "\n")
+    b.write_text("\n".join([_row("twin", "odometry", 0, 5.35, {}), _row("twin", "rich_slam", 0, 7.63, {}),
+                            _row("demo", "odometry", 1, 0.87, {}), _row("demo", "rich_slam", 1, 0.44, {})]) + "\n")
+    rows, notes = table3.read_rows([a, b])
+    got = sorted((r["seq"], r["method"], r["seed"], r["yaw_rmse_deg"]) for r in rows)
+    assert got == [("demo", "odometry", 0, 0.87), ("demo", "odometry", 1, 0.87), ("demo", "rich_slam", 0, 0.42),
+                   ("demo", "rich_slam", 1, 0.44), ("twin", "odometry", 0, 5.35), ("twin", "rich_slam", 0, 7.63)]
+    assert notes == [f"twin: the rows of {a} are dropped: its odometry differs from that of {b} (yaw RMSE 3.38 "
+                     "against 5.35 deg), so its filters ran on another odometry"]

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -148,17 +149,24 @@ def config_key(config: str, defaults: dict[str, Any] | None = None) -> str:
     return json.dumps(kept, sort_keys=True)
 
 
+#: the odometry row's errors that identify the odometry a results file's filters ran on
+ODOMETRY_SIGNATURE = ("pos_rmse_m", "yaw_rmse_deg", "pos_rmse_whole_m", "yaw_rmse_whole_deg")
+
+
 def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
     """The rows of several results files, for one table: a (sequence, method, seed) row that a later file
-    repeats is replaced by it; a table cell whose rows were made with different configurations
-    (:func:`config_key`) is refused, naming both, since its mean would mix them. Returns the rows and notes
-    (the replacements). Raises ``ValueError`` with the file and line for a line that is not a JSON row."""
-    rows: dict[tuple[str, str, int], dict[str, Any]] = {}
-    source: dict[tuple[str, str, int], str] = {}  # file:line of each kept row
-    notes: list[str] = []
-    for path in paths:
+    repeats is replaced by it; where a later file's odometry row of a sequence differs from an earlier file's
+    (the odometry was run again with other code or parameters), every row of that sequence in the earlier file
+    is dropped, since its filters ran on the other odometry; a table cell whose rows were made with different
+    configurations (:func:`config_key`) is refused, naming both, since its mean would mix them. Returns the rows
+    and notes (replacements, dropped rows). Raises ``ValueError`` with the file and line for a line that is not
+    a JSON row."""
+    per_file: list[list[tuple[tuple[str, str, int], dict[str, Any], str]]] = []
+    odometry: dict[tuple[int, str], tuple[float, ...]] = {}  # (file, seq) -> the odometry's errors there
+    for f, path in enumerate(paths):
         if not path.is_file():
             raise ValueError(f"{path}: no such results file (write one with --out)")
+        per_file.append([])
         for i, line in enumerate(path.read_text().splitlines(), 1):
             if not line.strip():
                 continue
@@ -168,9 +176,31 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
             except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
                 raise ValueError(f"{path}:{i}: not a table3 row ({exc}); each line is one JSON object with seq, "
                                  "method and seed") from None
+            per_file[-1].append((key, r, f"{path}:{i}"))
+            if key[1] == "odometry":
+                odometry[(f, key[0])] = tuple(float(r.get(k, math.nan)) for k in ODOMETRY_SIGNATURE)
+    latest: dict[str, tuple[int, tuple[float, ...]]] = {}  # seq -> the last file with its odometry, and it
+    for (f, seq), errs in sorted(odometry.items()):
+        latest[seq] = (f, errs)
+    rows: dict[tuple[str, str, int], dict[str, Any]] = {}
+    source: dict[tuple[str, str, int], str] = {}  # file:line of each kept row
+    notes: list[str] = []
+    for f, (path, items) in enumerate(zip(paths, per_file, strict=True)):
+        stale = {seq for (g, seq), errs in odometry.items()
+                 if g == f and latest[seq][0] > f
+                 and not np.allclose(errs, latest[seq][1], rtol=0, atol=1e-9, equal_nan=True)}
+        for seq in sorted(stale):
+            last = paths[latest[seq][0]]
+            was, now = odometry[(f, seq)], latest[seq][1]
+            yaw = 3 if not (math.isnan(was[3]) or math.isnan(now[3])) else 1  # whole-trajectory where both have it
+            notes.append(f"{seq}: the rows of {path} are dropped: its odometry differs from that of {last} (yaw "
+                         f"RMSE {was[yaw]:.2f} against {now[yaw]:.2f} deg), so its filters ran on another odometry")
+        for key, r, where in items:
+            if key[0] in stale:
+                continue
             if key in rows:
                 notes.append(f"{key[0]} {key[1]} seed {key[2]}: the row of {path} replaces an earlier one")
-            rows[key], source[key] = r, f"{path}:{i}"
+            rows[key], source[key] = r, where
     defaults = SlamParams().model_dump()
     configs: dict[tuple[str, str], tuple[str, str]] = {}
     for key, r in rows.items():
