@@ -36,7 +36,8 @@ def _plt() -> Any:
 
 
 def colour(method: str) -> str:
-    return METHOD_COLOURS.get(method, "black")
+    """A method's colour; a row of one of its estimates (``"rich_slam, fused"``) takes the method's."""
+    return METHOD_COLOURS.get(method, METHOD_COLOURS.get(method.split(", ")[0], "black"))
 
 
 def label(method: str) -> str:
@@ -200,7 +201,8 @@ def plot_table3(path: Path, results: Mapping[str, Mapping[str, Sequence[tuple[fl
                 title: str = "", per_row: int = 5,
                 paper: Mapping[str, Mapping[str, tuple[float, float]]] | None = None) -> Path:
     """RICH-SLAM Table III over seeds: one panel per sequence, a bar per method at its mean yaw RMSE
-    with one dot per seed, and the mean position RMSE written on the bar.
+    with one dot per seed, and the mean position RMSE written on the bar; a row of one of a method's estimates
+    (``"rich_slam, fused"``) is hatched in the method's colour.
 
     ``results[sequence][method]`` are the seeds' ``(position RMSE m, yaw RMSE deg)``; ``paper[sequence][method]``
     (optional) the published ``(position, yaw)`` of that method's counterpart, drawn as a black bar mark.
@@ -214,12 +216,15 @@ def plot_table3(path: Path, results: Mapping[str, Mapping[str, Sequence[tuple[fl
         ax.set_visible(False)
     order = list(METHOD_LABELS)  # one method order in every panel (unknown methods last)
     for ax, seq in zip(axes.ravel(), seqs, strict=False):
-        methods = sorted(results[seq], key=lambda m: order.index(m) if m in order else len(order))
+        base = [m.split(", ")[0] for m in order]
+        methods = sorted(results[seq], key=lambda m: (base.index(m.split(", ")[0]) if m.split(", ")[0] in base
+                                                      else len(order), m))
         marks = (paper or {}).get(seq, {})
         labelled = False
         for i, m in enumerate(methods):
             v = np.asarray(results[seq][m], dtype=np.float64).reshape(-1, 2)
-            ax.bar(i, v[:, 1].mean(), color=colour(m), alpha=0.55, width=0.75)
+            ax.bar(i, v[:, 1].mean(), color=colour(m), alpha=0.55, width=0.75,
+                   hatch="///" if ", " in m else None, edgecolor="white" if ", " in m else None)  # an estimate
             ax.plot(np.full(len(v), float(i)), v[:, 1], "o", color=colour(m), ms=3.5, mec="black", mew=0.4)
             ax.text(i, 0.0, f"{v[:, 0].mean():.2f} m", ha="center", va="bottom", fontsize=6.5, rotation=90)
             pub = marks.get(m)
