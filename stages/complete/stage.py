@@ -312,7 +312,6 @@ class CompleteStage(Stage):
         from stages.complete.voxel_grid import LatticeError, key_centres, lattice_keys
         from stages.complete.voxel_net import (
             auto_core,
-            completed_keys,
             map_domain,
             n_parameters,
             predict_tiles,
@@ -354,8 +353,7 @@ class CompleteStage(Stage):
             pred = predict_tiles(model, keys, traj, res, meta.band, core=core, device=device, advance=advance,
                                  bf16=p.bf16, tta=tta)
         wall = time.perf_counter() - t0
-        out = key_centres(completed_keys(pred, meta.threshold, keys if meta.union_radar else None,
-                                         meta.union_gate), res)
+        out = key_centres(meta.output_keys(pred, keys), res)
         return out, {
             "_counts": np.ones(len(out), np.int32),
             "model": "voxel",

@@ -10,8 +10,15 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.errors import UserError
-from stages.complete.voxel_grid import CHANNELS, Band
-from stages.complete.voxel_net import MODEL_KIND, TTA_SIZES, VoxelNetConfig, VoxelUNet
+from stages.complete.voxel_grid import CHANNELS, I64, Band
+from stages.complete.voxel_net import (
+    MODEL_KIND,
+    TTA_SIZES,
+    TilePrediction,
+    VoxelNetConfig,
+    VoxelUNet,
+    completed_keys,
+)
 
 FORMAT = "radar-pipeline/complete"
 VOXEL_FORMAT_VERSION = "1"
@@ -34,6 +41,11 @@ class VoxelMeta:
     #: lattice symmetries averaged at inference (``voxel_net.symmetric_probability``); the threshold and the gate
     #: were chosen with this many (1: the network alone, checkpoints before stop 42)
     tta: int = 1
+
+    def output_keys(self, pred: TilePrediction, radar_keys: I64) -> I64:
+        """The completed map this checkpoint stands for: its threshold, and the (pre-filtered) radar voxels
+        ``radar_keys`` united with it when it says so, through its gate (:func:`voxel_net.completed_keys`)."""
+        return completed_keys(pred, self.threshold, radar_keys if self.union_radar else None, self.union_gate)
 
     def to_strings(self) -> dict[str, str]:
         return {

@@ -135,7 +135,7 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
                 if subvoxel:
                     from stages.complete.voxel_net import subvoxel_points
 
-                    own = completed_keys(pred, meta.threshold, rk if meta.union_radar else None, meta.union_gate)
+                    own = meta.output_keys(pred, rk)
                     for v in subvoxel:
                         rows[subvoxel_row(v)][s] = score(subvoxel_points(pred, own, res, v), gt)
             log(f"{s}: " + "  ".join(f"{r} {v[s]['cd_l2']:.3f}/{v[s]['fscore_0.15']:.3f}" for r, v in rows.items()
