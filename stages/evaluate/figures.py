@@ -214,11 +214,14 @@ def plot_table3(path: Path, results: Mapping[str, Mapping[str, Sequence[tuple[fl
     fig, axes = plt.subplots(rows, cols, figsize=(3.1 * cols, 3.4 * rows), squeeze=False, constrained_layout=True)
     for ax in axes.ravel()[len(seqs):]:
         ax.set_visible(False)
-    order = list(METHOD_LABELS)  # one method order in every panel (unknown methods last)
+    order = list(METHOD_LABELS)  # one method order in every panel (unknown methods last), estimates after it
+
+    def rank(m: str) -> tuple[int, str]:
+        method = m.split(", ")[0]
+        return (order.index(method) if method in order else len(order), m)
+
     for ax, seq in zip(axes.ravel(), seqs, strict=False):
-        base = [m.split(", ")[0] for m in order]
-        methods = sorted(results[seq], key=lambda m: (base.index(m.split(", ")[0]) if m.split(", ")[0] in base
-                                                      else len(order), m))
+        methods = sorted(results[seq], key=rank)
         marks = (paper or {}).get(seq, {})
         labelled = False
         for i, m in enumerate(methods):

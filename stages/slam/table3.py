@@ -179,21 +179,20 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
             per_file[-1].append((key, r, f"{path}:{i}"))
             if key[1] == "odometry":
                 odometry[(f, key[0])] = tuple(float(r.get(k, math.nan)) for k in ODOMETRY_SIGNATURE)
-    latest: dict[str, tuple[int, tuple[float, ...]]] = {}  # seq -> the last file with its odometry, and it
-    for (f, seq), errs in sorted(odometry.items()):
-        latest[seq] = (f, errs)
+    latest = {seq: f for f, seq in sorted(odometry)}  # seq -> the last file with an odometry row of it
+    whole, paper = ODOMETRY_SIGNATURE.index("yaw_rmse_whole_deg"), ODOMETRY_SIGNATURE.index("yaw_rmse_deg")
     rows: dict[tuple[str, str, int], dict[str, Any]] = {}
     source: dict[tuple[str, str, int], str] = {}  # file:line of each kept row
     notes: list[str] = []
     for f, (path, items) in enumerate(zip(paths, per_file, strict=True)):
-        stale = {seq for (g, seq), errs in odometry.items()
-                 if g == f and latest[seq][0] > f
-                 and not np.allclose(errs, latest[seq][1], rtol=0, atol=1e-9, equal_nan=True)}
-        for seq in sorted(stale):
-            last = paths[latest[seq][0]]
-            was, now = odometry[(f, seq)], latest[seq][1]
-            yaw = 3 if not (math.isnan(was[3]) or math.isnan(now[3])) else 1  # whole-trajectory where both have it
-            notes.append(f"{seq}: the rows of {path} are dropped: its odometry differs from that of {last} (yaw "
+        stale = set()
+        for seq, g in sorted(latest.items()):
+            was, now = odometry.get((f, seq)), odometry[(g, seq)]
+            if g <= f or was is None or np.allclose(was, now, rtol=0, atol=1e-9, equal_nan=True):
+                continue
+            stale.add(seq)
+            yaw = whole if not (math.isnan(was[whole]) or math.isnan(now[whole])) else paper
+            notes.append(f"{seq}: the rows of {path} are dropped: its odometry differs from that of {paths[g]} (yaw "
                          f"RMSE {was[yaw]:.2f} against {now[yaw]:.2f} deg), so its filters ran on another odometry")
         for key, r, where in items:
             if key[0] in stale:
