@@ -52,12 +52,12 @@ def test_a_drifting_gyro_is_followed_and_a_wandering_filter_is_not() -> None:
     model = HeadingFusion(bias_sigma0=0.01, bias_walk=1e-4, filter_sigma=np.deg2rad(2.0), filter_tau=30.0)
     w = _ou(rng, np.deg2rad(2.0), 30.0)
     drift = 0.005 * t
-    c, sd, _ = fuse_heading(t, odo[:, 2], odo[:, 2] + drift + w, var, model)
+    c, sd, *_ = fuse_heading(t, odo[:, 2], odo[:, 2] + drift + w, var, model)
     rms = float(np.sqrt(np.mean((c - drift) ** 2)))
     assert rms < 0.8 * float(np.sqrt(np.mean(w ** 2)))  # better than the filter alone
     assert rms < 0.05 * float(np.sqrt(np.mean(drift ** 2)))  # and far better than the odometry
     assert np.all(sd > 0)
-    c0, _, _ = fuse_heading(t, odo[:, 2], odo[:, 2] + w, var, HeadingFusion(
+    c0, *_ = fuse_heading(t, odo[:, 2], odo[:, 2] + w, var, HeadingFusion(
         bias_sigma0=5e-5, bias_walk=1e-6, filter_sigma=np.deg2rad(2.0), filter_tau=30.0))
     assert float(np.sqrt(np.mean(c0 ** 2))) < 0.5 * float(np.sqrt(np.mean(w ** 2)))
 
@@ -85,3 +85,74 @@ def test_a_jump_of_the_filter_is_its_own_error_not_the_odometrys() -> None:
     free = fuse_heading(t, odo[:, 2], yaw_filter, var, HeadingFusion(jump_gate=0.0))
     assert free.jumps == 0
     assert np.degrees(np.abs(free.correction)).max() > 2 * np.degrees(np.abs(gated.correction)).max()
+
+
+def _joint_covariance(t: np.ndarray, var: np.ndarray, m: HeadingFusion) -> np.ndarray:
+    """Cov(d) of the model ``d_k = c_k + w_k + v_k`` built by brute force: every state's covariance with every
+    later one through the products of the transitions (the reference for the filter's evidence)."""
+    n = len(t)
+    dts = np.r_[0.0, np.diff(t)]
+    trans = [np.eye(3)]
+    qs = [np.zeros((3, 3))]
+    for k in range(1, n):
+        dt = dts[k]
+        phi = np.exp(-dt / m.filter_tau)
+        trans.append(np.array([[1.0, -dt, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, phi]]))
+        q = np.zeros((3, 3))
+        q[0, 0] = m.bias_walk ** 2 * dt ** 3 / 3 + m.increment_scale * var[k]
+        q[0, 1] = q[1, 0] = -m.bias_walk ** 2 * dt ** 2 / 2
+        q[1, 1] = m.bias_walk ** 2 * dt
+        q[2, 2] = m.filter_sigma ** 2 * (1 - phi * phi)
+        qs.append(q)
+    ps = [np.diag([1e-12, m.bias_sigma0 ** 2 + 1e-18, 1e-12])]
+    for k in range(1, n):
+        ps.append(trans[k] @ ps[-1] @ trans[k].T + qs[k])
+    h = np.array([1.0, 0.0, 1.0])
+    cov = np.empty((n, n))
+    for j in range(n):
+        cross = ps[j]
+        for k in range(j, n):
+            if k > j:
+                cross = trans[k] @ cross  # Cov(x_k, x_j)
+            cov[k, j] = cov[j, k] = h @ cross @ h
+    return cov + m.measurement_sigma ** 2 * np.eye(n)
+
+
+def test_the_evidence_is_the_models_gaussian_density_of_the_difference() -> None:
+    from scipy.stats import multivariate_normal
+
+    rng = np.random.default_rng(7)
+    n = 60
+    t = np.cumsum(rng.uniform(0.08, 0.12, n))
+    var = rng.uniform(1e-7, 1e-5, n)
+    yo = np.cumsum(rng.normal(0.0, 0.01, n))
+    yf = yo + np.cumsum(rng.normal(0.0, 0.004, n))
+    yf += yo[0] - yf[0]  # the fusion reads the difference relative to its start
+    for m in (HeadingFusion(jump_gate=0.0), HeadingFusion(jump_gate=0.0, bias_sigma0=0.01, filter_sigma=0.02,
+                                                          filter_tau=3.0, measurement_sigma=0.002)):
+        got = fuse_heading(t, yo, yf, var, m).log_evidence
+        want = multivariate_normal(np.zeros(n), _joint_covariance(t, var, m)).logpdf(yf - yo)
+        assert got == pytest.approx(want, rel=1e-6, abs=1e-6)
+
+
+def test_the_batched_evidence_equals_each_models_own() -> None:
+    """fusion_evidence runs fuse_heading's forward pass for many models at once, jump gate included."""
+    from stages.slam.heading_fusion import fusion_evidence
+
+    rng = np.random.default_rng(8)
+    n = 400
+    t = np.arange(n) * DT
+    var = np.full(n, 1e-6)
+    yo = np.cumsum(rng.normal(0.0, 0.01, n))
+    yf = yo + np.cumsum(rng.normal(0.0, 0.003, n))
+    yf[250:] += 0.3  # a jump past the gate for some models
+    models = [HeadingFusion(bias_sigma0=b, bias_walk=w, filter_sigma=np.deg2rad(s), filter_tau=tau, jump_gate=g,
+                            increment_scale=k)
+              for b, w, s, tau, g, k in [(1e-4, 1e-5, 1, 10, 5, 1), (3e-3, 3e-4, 8, 100, 5, 0.1),
+                                         (1e-3, 1e-4, 16, 300, 0, 1), (3e-3, 3e-4, 8, 100, 0, 0.1)]]
+    got = fusion_evidence(t, yo, yf, var, models)
+    want = [fuse_heading(t, yo, yf, var, m).log_evidence for m in models]
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    assert [fuse_heading(t, yo, yf, var, m).jumps > 0 for m in models] == [True, True, False, False]
+    with pytest.raises(ValueError, match="a model at least"):
+        fusion_evidence(t, yo, yf, var, [])

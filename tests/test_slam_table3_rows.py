@@ -36,13 +36,30 @@ def test_rows_of_two_files_make_one_table_and_a_later_row_replaces_an_earlier_on
     assert "0.72 ± 0.09 (3)" in md  # mean 0.7167, half range (0.80 - 0.63) / 2
 
 
-def test_a_cell_that_mixes_configurations_is_refused_naming_both(tmp_path: Path) -> None:
+def test_a_cell_that_mixes_configurations_in_one_file_is_refused_naming_both(tmp_path: Path) -> None:
+    a = tmp_path / "a.jsonl"
+    a.write_text(_row("demo", "rich_slam", 0, 0.72, {"workers": 0}) + "\n"
+                 + _row("demo", "rich_slam", 1, 0.63, {"endpoint_tolerance": 0.25}) + "\n")
+    with pytest.raises(ValueError, match=r"demo rich_slam: rows of different configurations.*a\.jsonl:1.*a\.jsonl:2"):
+        table3.read_rows([a])
+    assert table3.main(["--table", str(a)]) == 2
+
+
+def test_a_later_file_with_a_cell_in_another_configuration_supersedes_the_earlier_rows(tmp_path: Path) -> None:
+    """A default changed between two files: the later file's cell replaces every seed of the earlier one (not
+    only the seeds it repeats), and cells the later file lacks keep their rows."""
     a, b = tmp_path / "a.jsonl", tmp_path / "b.jsonl"
-    a.write_text(_row("demo", "rich_slam", 0, 0.72, {"workers": 0}) + "\n")
-    b.write_text(_row("demo", "rich_slam", 1, 0.63, {"endpoint_tolerance": 0.25}) + "\n")
-    with pytest.raises(ValueError, match=r"demo rich_slam: rows of different configurations.*a\.jsonl:1.*b\.jsonl:1"):
-        table3.read_rows([a, b])
-    assert table3.main(["--table", str(a), str(b)]) == 2
+    a.write_text("\n".join([_row("demo", "rich_slam", 0, 0.72, {"fusion_increment_scale": 1.0}),
+                            _row("demo", "rich_slam", 1, 0.90, {"fusion_increment_scale": 1.0}),
+                            _row("lab", "rich_slam", 0, 0.50, {"fusion_increment_scale": 1.0})]) + "\n")
+    b.write_text(_row("demo", "rich_slam", 0, 0.63, {"workers": 0}) + "\n")
+    rows, notes = table3.read_rows([a, b])
+    assert sorted((r["seq"], r["yaw_rmse_whole_deg"]) for r in rows) == [("demo", 0.63), ("lab", 0.50)]
+    assert notes == [f"demo rich_slam: the rows of {a} are dropped: {b} has this cell in another configuration"]
+    b.write_text(_row("demo", "rich_slam", 2, 0.66, {"fusion_increment_scale": 1.0}) + "\n")  # the same one
+    rows, notes = table3.read_rows([a, b])
+    assert sorted(r["yaw_rmse_whole_deg"] for r in rows if r["seq"] == "demo") == [0.66, 0.72, 0.90]
+    assert notes == []
 
 
 def test_a_line_that_is_not_a_row_names_its_file_and_line(tmp_path: Path) -> None:

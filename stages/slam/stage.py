@@ -203,6 +203,9 @@ class SlamParams(StageParams):
                                        "heading error, deg")
     fusion_filter_tau: float = Field(100.0, gt=0, description="estimate = fused: correlation time of the filter's "
                                      "heading error, s")
+    fusion_increment_scale: float = Field(0.1, gt=0, description="estimate = fused: factor on the odometry's "
+                                          "per-increment yaw variances in the fusion's model of its error (below 1: "
+                                          "they over-cover yaw; stages/slam/README.md stop 46)")
     fusion_jump_gate: float = Field(5.0, ge=0, description="estimate = fused: a heading step of the filter past "
                                     "this many predicted sigmas is its own error's jump (0: off)")
     # -- FastSLAM grid baseline
@@ -304,7 +307,8 @@ class SlamParams(StageParams):
             support_variance=None if self.common_support is None else self.common_support * self.signal_variance,
             fusion=HeadingFusion(bias_sigma0=self.fusion_bias_sigma0, bias_walk=self.fusion_bias_walk,
                                  filter_sigma=math.radians(self.fusion_filter_sigma),
-                                 filter_tau=self.fusion_filter_tau, jump_gate=self.fusion_jump_gate),
+                                 filter_tau=self.fusion_filter_tau, jump_gate=self.fusion_jump_gate,
+                                 increment_scale=self.fusion_increment_scale),
         )
 
 

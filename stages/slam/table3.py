@@ -157,8 +157,10 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
     """The rows of several results files, for one table: a (sequence, method, seed) row that a later file
     repeats is replaced by it; where a later file's odometry row of a sequence differs from an earlier file's
     (the odometry was run again with other code or parameters), every row of that sequence in the earlier file
-    is dropped, since its filters ran on the other odometry; a table cell whose rows were made with different
-    configurations (:func:`config_key`) is refused, naming both, since its mean would mix them. Returns the rows
+    is dropped, since its filters ran on the other odometry; likewise a (sequence, method) cell's rows in an earlier
+    file are dropped where a later file has that cell in another configuration (:func:`config_key`: a default
+    changed between them); a cell whose rows in one file were made with different configurations is refused,
+    naming both, since its mean would mix them. Returns the rows
     and notes (replacements, dropped rows). Raises ``ValueError`` with the file and line for a line that is not
     a JSON row."""
     per_file: list[list[tuple[tuple[str, str, int], dict[str, Any], str]]] = []
@@ -180,6 +182,15 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
             if key[1] == "odometry":
                 odometry[(f, key[0])] = tuple(float(r.get(k, math.nan)) for k in ODOMETRY_SIGNATURE)
     latest = {seq: f for f, seq in sorted(odometry)}  # seq -> the last file with an odometry row of it
+    defaults = SlamParams().model_dump()
+    cell_config: dict[tuple[str, str], tuple[int, str]] = {}  # (seq, method) -> the last file with rows, config
+    for f, items in enumerate(per_file):
+        for key, r, where in items:
+            if key[1] != "odometry":
+                try:
+                    cell_config[key[:2]] = (f, config_key(r.get("config", ""), defaults))
+                except json.JSONDecodeError as exc:
+                    raise ValueError(f"{where}: its config is not JSON ({exc})") from None
     whole, paper = ODOMETRY_SIGNATURE.index("yaw_rmse_whole_deg"), ODOMETRY_SIGNATURE.index("yaw_rmse_deg")
     rows: dict[tuple[str, str, int], dict[str, Any]] = {}
     source: dict[tuple[str, str, int], str] = {}  # file:line of each kept row
@@ -194,13 +205,19 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
             yaw = whole if not (math.isnan(was[whole]) or math.isnan(now[whole])) else paper
             notes.append(f"{seq}: the rows of {path} are dropped: its odometry differs from that of {paths[g]} (yaw "
                          f"RMSE {was[yaw]:.2f} against {now[yaw]:.2f} deg), so its filters ran on another odometry")
+        superseded: set[tuple[str, str]] = set()
         for key, r, where in items:
             if key[0] in stale:
+                continue
+            g, c = cell_config.get(key[:2], (f, ""))
+            if g > f and config_key(r.get("config", ""), defaults) != c:
+                superseded.add(key[:2])
                 continue
             if key in rows:
                 notes.append(f"{key[0]} {key[1]} seed {key[2]}: the row of {path} replaces an earlier one")
             rows[key], source[key] = r, where
-    defaults = SlamParams().model_dump()
+        notes.extend(f"{seq} {method}: the rows of {path} are dropped: {paths[cell_config[(seq, method)][0]]} has "
+                     "this cell in another configuration" for seq, method in sorted(superseded))
     configs: dict[tuple[str, str], tuple[str, str]] = {}
     for key, r in rows.items():
         seq, method, _ = key
