@@ -156,3 +156,10 @@ def test_the_batched_evidence_equals_each_models_own() -> None:
     assert [fuse_heading(t, yo, yf, var, m).jumps > 0 for m in models] == [True, True, False, False]
     with pytest.raises(ValueError, match="a model at least"):
         fusion_evidence(t, yo, yf, var, [])
+
+
+def test_the_stage_passes_the_increment_scale_to_the_fusion() -> None:
+    from stages.slam.stage import SlamParams
+
+    assert SlamParams().config().fusion.increment_scale == HeadingFusion().increment_scale == 0.1
+    assert SlamParams(fusion_increment_scale=0.5).config().fusion.increment_scale == 0.5

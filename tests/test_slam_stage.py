@@ -244,7 +244,8 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
     # equal to the fused row of the filter run itself
     keep, out5, out6 = tmp_path / "kept", tmp_path / "t3_kept.jsonl", tmp_path / "t3_fused.jsonl"
     base5 = [str(tmp_path / "seq_a"), "--methods", "fastslam_grid", "--seeds", "0", "--set", "n_particles=4",
-             "--set", "workers=0", "--set", "fusion_filter_sigma=1.5", "--set", 'estimate="smoothed"']
+             "--set", "workers=0", "--set", "fusion_filter_sigma=1.5", "--set", "fusion_increment_scale=0.5",
+             "--set", 'estimate="smoothed"']
     assert table3.main([*base5, "--out", str(out5), "--keep", str(keep)]) == 0
     kept = list((keep / "seq_a").glob("fastslam_grid_seed0_*.npz"))
     assert len(kept) == 1 and not list(keep.rglob("*.tmp.npz"))
