@@ -163,8 +163,11 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
     naming both, since its mean would mix them. Returns the rows
     and notes (replacements, dropped rows). Raises ``ValueError`` with the file and line for a line that is not
     a JSON row."""
-    per_file: list[list[tuple[tuple[str, str, int], dict[str, Any], str]]] = []
+    defaults = SlamParams().model_dump()
+    # per file: (seq, method, seed), the row, its file:line and its configuration (config_key; "" for odometry)
+    per_file: list[list[tuple[tuple[str, str, int], dict[str, Any], str, str]]] = []
     odometry: dict[tuple[int, str], tuple[float, ...]] = {}  # (file, seq) -> the odometry's errors there
+    cell_config: dict[tuple[str, str], tuple[int, str]] = {}  # (seq, method) -> the last file with rows, config
     for f, path in enumerate(paths):
         if not path.is_file():
             raise ValueError(f"{path}: no such results file (write one with --out)")
@@ -178,22 +181,20 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
             except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
                 raise ValueError(f"{path}:{i}: not a table3 row ({exc}); each line is one JSON object with seq, "
                                  "method and seed") from None
-            per_file[-1].append((key, r, f"{path}:{i}"))
+            config = ""
             if key[1] == "odometry":
                 odometry[(f, key[0])] = tuple(float(r.get(k, math.nan)) for k in ODOMETRY_SIGNATURE)
-    latest = {seq: f for f, seq in sorted(odometry)}  # seq -> the last file with an odometry row of it
-    defaults = SlamParams().model_dump()
-    cell_config: dict[tuple[str, str], tuple[int, str]] = {}  # (seq, method) -> the last file with rows, config
-    for f, items in enumerate(per_file):
-        for key, r, where in items:
-            if key[1] != "odometry":
+            else:
                 try:
-                    cell_config[key[:2]] = (f, config_key(r.get("config", ""), defaults))
+                    config = config_key(r.get("config", ""), defaults)
                 except json.JSONDecodeError as exc:
-                    raise ValueError(f"{where}: its config is not JSON ({exc})") from None
+                    raise ValueError(f"{path}:{i}: its config is not JSON ({exc})") from None
+                cell_config[key[:2]] = (f, config)
+            per_file[-1].append((key, r, f"{path}:{i}", config))
+    latest = {seq: f for f, seq in sorted(odometry)}  # seq -> the last file with an odometry row of it
     whole, paper = ODOMETRY_SIGNATURE.index("yaw_rmse_whole_deg"), ODOMETRY_SIGNATURE.index("yaw_rmse_deg")
     rows: dict[tuple[str, str, int], dict[str, Any]] = {}
-    source: dict[tuple[str, str, int], str] = {}  # file:line of each kept row
+    source: dict[tuple[str, str, int], tuple[str, str]] = {}  # file:line and configuration of each kept row
     notes: list[str] = []
     for f, (path, items) in enumerate(zip(paths, per_file, strict=True)):
         stale = set()
@@ -206,31 +207,26 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
             notes.append(f"{seq}: the rows of {path} are dropped: its odometry differs from that of {paths[g]} (yaw "
                          f"RMSE {was[yaw]:.2f} against {now[yaw]:.2f} deg), so its filters ran on another odometry")
         superseded: set[tuple[str, str]] = set()
-        for key, r, where in items:
+        for key, r, where, config in items:
             if key[0] in stale:
                 continue
-            g, c = cell_config.get(key[:2], (f, ""))
-            if g > f and config_key(r.get("config", ""), defaults) != c:
+            g, c = cell_config.get(key[:2], (f, config))
+            if g > f and config != c:
                 superseded.add(key[:2])
                 continue
             if key in rows:
                 notes.append(f"{key[0]} {key[1]} seed {key[2]}: the row of {path} replaces an earlier one")
-            rows[key], source[key] = r, where
+            rows[key], source[key] = r, (where, config)
         notes.extend(f"{seq} {method}: the rows of {path} are dropped: {paths[cell_config[(seq, method)][0]]} has "
                      "this cell in another configuration" for seq, method in sorted(superseded))
     configs: dict[tuple[str, str], tuple[str, str]] = {}
-    for key, r in rows.items():
-        seq, method, _ = key
+    for (seq, method, _), (where, c) in source.items():
         if method == "odometry":
             continue
-        try:
-            c = config_key(r.get("config", ""), defaults)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{source[key]}: its config is not JSON ({exc})") from None
-        first = configs.setdefault((seq, method), (c, source[key]))
+        first = configs.setdefault((seq, method), (c, where))
         if first[0] != c:
             raise ValueError(f"{seq} {method}: rows of different configurations in one cell, {first[0]} "
-                             f"({first[1]}) and {c} ({source[key]}); tabulate them separately")
+                             f"({first[1]}) and {c} ({where}); tabulate them separately")
     return list(rows.values()), notes
 
 
