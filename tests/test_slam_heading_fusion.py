@@ -135,29 +135,6 @@ def test_the_evidence_is_the_models_gaussian_density_of_the_difference() -> None
         assert got == pytest.approx(want, rel=1e-6, abs=1e-6)
 
 
-def test_the_batched_evidence_equals_each_models_own() -> None:
-    """fusion_evidence runs fuse_heading's forward pass for many models at once, jump gate included."""
-    from stages.slam.heading_fusion import fusion_evidence
-
-    rng = np.random.default_rng(8)
-    n = 400
-    t = np.arange(n) * DT
-    var = np.full(n, 1e-6)
-    yo = np.cumsum(rng.normal(0.0, 0.01, n))
-    yf = yo + np.cumsum(rng.normal(0.0, 0.003, n))
-    yf[250:] += 0.3  # a jump past the gate for some models
-    models = [HeadingFusion(bias_sigma0=b, bias_walk=w, filter_sigma=np.deg2rad(s), filter_tau=tau, jump_gate=g,
-                            increment_scale=k)
-              for b, w, s, tau, g, k in [(1e-4, 1e-5, 1, 10, 5, 1), (3e-3, 3e-4, 8, 100, 5, 0.1),
-                                         (1e-3, 1e-4, 16, 300, 0, 1), (3e-3, 3e-4, 8, 100, 0, 0.1)]]
-    got = fusion_evidence(t, yo, yf, var, models)
-    want = [fuse_heading(t, yo, yf, var, m).log_evidence for m in models]
-    np.testing.assert_allclose(got, want, rtol=1e-9)
-    assert [fuse_heading(t, yo, yf, var, m).jumps > 0 for m in models] == [True, True, False, False]
-    with pytest.raises(ValueError, match="a model at least"):
-        fusion_evidence(t, yo, yf, var, [])
-
-
 def test_the_stage_passes_the_increment_scale_to_the_fusion() -> None:
     from stages.slam.stage import SlamParams
 

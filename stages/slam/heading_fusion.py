@@ -14,14 +14,13 @@ The smoothed ``c`` corrects the odometry's heading; the position is the odometry
 composed along the corrected heading. Where the difference grows like a gyro drift the fused heading follows
 the filter; where it wanders inside ``filter_sigma`` it stays with the odometry. States ``[c, b, w]``, exact
 discretisation of the integrated random walk; a forward Kalman filter and a Rauch-Tung-Striebel pass. The
-forward pass also gives the model's evidence ``log p(d | model)`` (:func:`fusion_evidence` for many models at
-once); choosing the model per run by it was measured and not adopted (stages/slam/README.md, stop 46).
+forward pass also gives the model's evidence ``log p(d | model)``; choosing the model per run by it was
+measured and not adopted (stages/slam/README.md, stop 46).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -142,61 +141,3 @@ def recompose(odometry: npt.ArrayLike, correction: npt.ArrayLike) -> F64:
     out[1:, :2] = odo[0, :2] + np.cumsum(steps, axis=0)
     out[1:, 2] = wrap_angle(yaw[1:])
     return out
-
-
-def fusion_evidence(t_s: npt.ArrayLike, yaw_odometry: npt.ArrayLike, yaw_filter: npt.ArrayLike,
-                    increment_var: npt.ArrayLike, models: Sequence[HeadingFusion]) -> F64:
-    """``log p(d | model)`` of every model (``(len(models),)``): :func:`fuse_heading`'s forward pass, jump gate
-    included, run for all the models at once (equal to its ``log_evidence``, model by model)."""
-    t = np.asarray(t_s, np.float64)
-    yo, yf = np.asarray(yaw_odometry, np.float64), np.asarray(yaw_filter, np.float64)
-    var = np.asarray(increment_var, np.float64)
-    n, g = len(t), len(models)
-    if not (len(yo) == len(yf) == len(var) == n) or n == 0 or g == 0:
-        raise ValueError(f"fusion_evidence: {n} stamps, {len(yo)} odometry and {len(yf)} filter headings, "
-                         f"{len(var)} increment variances, {g} models: one of each per scan and a model at least")
-    d = np.unwrap(yf - yo)
-    d = d - d[0]
-    dts = np.r_[0.0, np.diff(t)]
-    if np.any(dts < 0):
-        raise ValueError("fusion_evidence: the stamps go backwards")
-
-    def field(name: str) -> F64:
-        return np.array([getattr(m, name) for m in models], np.float64)
-
-    tau, fsig, qb = field("filter_tau"), field("filter_sigma"), field("bias_walk") ** 2
-    r, scale, gate2 = field("measurement_sigma") ** 2, field("increment_scale"), field("jump_gate") ** 2
-    x = np.zeros((g, 3))
-    p = np.zeros((g, 3, 3))
-    p[:, 0, 0] = p[:, 2, 2] = 1e-12
-    p[:, 1, 1] = field("bias_sigma0") ** 2 + 1e-18
-    evidence = np.zeros(g)
-    for k in range(n):
-        if k > 0:
-            dt = dts[k]
-            phi = np.exp(-dt / tau)
-            # x <- F x and P <- F P F^T + Q with F = [[1, -dt, 0], [0, 1, 0], [0, 0, phi]], written out
-            x = np.c_[x[:, 0] - dt * x[:, 1], x[:, 1], phi * x[:, 2]]
-            fp = p.copy()
-            fp[:, 0, :] = p[:, 0, :] - dt * p[:, 1, :]
-            fp[:, 2, :] = phi[:, None] * p[:, 2, :]
-            p = fp.copy()
-            p[:, :, 0] = fp[:, :, 0] - dt * fp[:, :, 1]
-            p[:, :, 2] = phi[:, None] * fp[:, :, 2]
-            p[:, 0, 0] += qb * dt ** 3 / 3 + scale * var[k]
-            p[:, 0, 1] -= qb * dt ** 2 / 2
-            p[:, 1, 0] -= qb * dt ** 2 / 2
-            p[:, 1, 1] += qb * dt
-            p[:, 2, 2] += fsig ** 2 * (1 - phi * phi)
-        s = p[:, 0, 0] + 2 * p[:, 0, 2] + p[:, 2, 2] + r
-        nu = d[k] - (x[:, 0] + x[:, 2])
-        jump = (gate2 > 0) & (nu * nu > gate2 * s)
-        p[jump, 2, 2] += nu[jump] ** 2
-        s = np.where(jump, s + nu * nu, s)
-        evidence -= 0.5 * (np.log(2.0 * np.pi * s) + nu * nu / s)
-        ph = p[:, :, 0] + p[:, :, 2]  # P H^T
-        gain = ph / s[:, None]
-        x = x + gain * nu[:, None]
-        p = p - gain[:, :, None] * ph[:, None, :]
-        p = 0.5 * (p + p.transpose(0, 2, 1))
-    return evidence
