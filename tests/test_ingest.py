@@ -192,6 +192,22 @@ def test_time_going_backwards_is_reported_and_sorted(tmp_path: Path) -> None:
     assert np.all(np.diff(read_artifact(out / "imu.parquet", "imu")["t_ns"].to_numpy()) > 0)
 
 
+def test_radar_latency_moves_only_the_radar_stamps(tmp_path: Path) -> None:
+    """``radar_latency_s``: a radar stamped on arrival is late; every radar stamp moves back by it, nothing else."""
+    sc = make_scene()
+    log = write_log(tmp_path / "log", sc, "mcap")
+    plain = ingest(log, tmp_path / "runs_a")
+    late = ingest(log, tmp_path / "runs_b", radar_latency_s=0.03)
+    for name in ("radar", "lidar", "imu", "groundtruth"):
+        t0 = read_artifact(plain / f"{name}.parquet", name)["t_ns"].to_numpy()
+        t1 = read_artifact(late / f"{name}.parquet", name)["t_ns"].to_numpy()
+        np.testing.assert_array_equal(t1, t0 - 30_000_000 if name == "radar" else t0)
+    stamps = set(read_artifact(late / "radar.parquet", "radar")["t_ns"].to_numpy())
+    assert stamps == {t - 30_000_000 for t, _ in sc.radar}
+    with pytest.raises(UserError, match=r"ingest\.radar_latency_s=2\.0"):
+        ingest(log, tmp_path / "runs_c", radar_latency_s=2.0)
+
+
 @pytest.mark.parametrize("form", ["ros1", "folder"])
 def test_label_sidecar_is_joined_by_scan_and_point_index(tmp_path: Path, form: str) -> None:
     sc = make_scene()

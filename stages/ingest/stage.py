@@ -73,6 +73,9 @@ class IngestParams(StageParams):
     clock_tolerance_s: float = Field(1.0, gt=0, description="auto: header-record offsets further apart than this "
                                                             "are different clocks, s")
     clock_sample: int = Field(50, ge=2, description="first messages per stream examined to choose the clock")
+    radar_latency_s: float = Field(0.0, ge=-0.5, le=0.5, description="radar stamp minus the time the scan measured "
+                                   "the scene (s), subtracted from every radar stamp: a radar stamped on arrival "
+                                   "(the TI sensors of ColoRadar) is late by its frame and processing time")
     radar_gap_warn_s: float = Field(1.0, gt=0, description="warn about a time without radar points longer than this, s")
     base_frame: str = Field("", description="override the profile's base (body) frame name")
     radar_frame: str = Field("", description="override the radar frame name (when the messages' frame_id is empty)")
@@ -208,6 +211,8 @@ class _Ingest:
         if clock is not None:
             msg.t_ns = clock.time(msg.header_ns, msg.record_ns)
             msg.record_time = clock.use == "record" or (clock.use == "header" and msg.header_ns == 0)
+        if msg.stream == "radar" and self.p.radar_latency_s:
+            msg.t_ns -= round(self.p.radar_latency_s * NS)
         st.record_time_used += int(msg.record_time)
         if msg.frame and msg.stream not in self.frames:
             self.frames[msg.stream] = msg.frame.lstrip("/")
