@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.slam.heading_fusion import HeadingFusion, fuse_heading, recompose
+from stages.slam.heading_fusion import HeadingFusion, fuse_heading, informed, recompose
 from stages.slam.se2 import wrap_angle
 
 DT = 0.1
@@ -140,3 +140,39 @@ def test_the_stage_passes_the_increment_scale_to_the_fusion() -> None:
 
     assert SlamParams().config().fusion.increment_scale == HeadingFusion().increment_scale == 0.1
     assert SlamParams(fusion_increment_scale=0.5).config().fusion.increment_scale == 0.5
+    assert SlamParams().config().fusion.information_ref == HeadingFusion().information_ref == 400.0
+    assert SlamParams(fusion_information_ref=0).config().fusion.information_ref == 0.0
+
+
+def test_informed_widens_the_filter_error_as_one_over_the_square_root_of_the_information() -> None:
+    m = HeadingFusion(information_ref=400.0)
+    sigma = m.filter_sigma
+    assert informed(m, np.full(50, 100.0)).filter_sigma == pytest.approx(2 * sigma)  # a quarter: twice
+    assert informed(m, np.r_[np.full(30, 25.0), np.full(20, 1e4)]).filter_sigma == pytest.approx(4 * sigma)  # median
+    assert informed(m, np.full(50, 900.0)) == m  # as informative as the reference or more: unchanged
+    assert informed(HeadingFusion(information_ref=0.0), np.full(50, 1.0)).filter_sigma == sigma  # off
+    assert informed(m, np.zeros(50)).filter_sigma == pytest.approx(100 * sigma)  # no information: capped, finite
+    assert informed(m, np.zeros(0)) == m
+
+
+def test_a_filter_whose_weight_holds_little_heading_is_trusted_less() -> None:
+    """A good odometry (no drift) and a filter whose heading wanders 6 deg over a minute, as a flat weight lets it:
+    the informed model (median information a sixteenth of the reference: filter_sigma x4) keeps the fused heading
+    nearer the odometry, so nearer the truth, than the default model, on every one of four runs; a gyro drift of
+    86 deg over the 300 s is still followed (to within 30 % of its RMS; the default model does better there)."""
+    ratios = []
+    for seed in range(11, 15):
+        rng = np.random.default_rng(seed)
+        t = np.arange(N) * DT
+        odo = _odometry(rng)
+        var = np.full(N, 1e-7)
+        wander = _ou(rng, np.deg2rad(6.0), 60.0)
+        m = HeadingFusion()
+        low = informed(m, np.full(N, m.information_ref / 16))
+        plain = fuse_heading(t, odo[:, 2], odo[:, 2] + wander, var, m).correction
+        wide = fuse_heading(t, odo[:, 2], odo[:, 2] + wander, var, low).correction
+        ratios.append(np.sqrt(np.mean(wide ** 2)) / np.sqrt(np.mean(plain ** 2)))
+        drift = 0.005 * t
+        follows = fuse_heading(t, odo[:, 2], odo[:, 2] + drift + wander, var, low).correction
+        assert np.sqrt(np.mean((follows - drift) ** 2)) < 0.3 * np.sqrt(np.mean(drift ** 2))
+    assert max(ratios) < 1.0 and np.mean(ratios) < 0.8

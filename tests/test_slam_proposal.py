@@ -7,6 +7,7 @@ import pytest
 
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import sample_beams
+from stages.slam.heading_fusion import informed
 from stages.slam.methods import OdometryMotion, SlamConfig, domain_from_trajectory, fused_estimate, run_method
 from stages.slam.rbpf import MotionNoise, Proposal, YawBias, propagate, weighted_mean_pose
 from stages.slam.se2 import compose, wrap_angle
@@ -114,7 +115,9 @@ def test_weighted_mean_stays_on_the_odometry_where_the_weights_say_nothing() -> 
     assert set(r.estimates) == {"best_per_scan", "final_best_history", "weighted_mean", "smoothed", "fused"}
     np.testing.assert_array_equal(r.poses, r.estimates["weighted_mean"])
     # the fused estimate is the smoother's heading fused with the odometry's, the odometry's steps along it
-    fused, jumps = fused_estimate(run.odometry, r.estimates["smoothed"], motion, cfg.fusion)
+    # a weight without any heading information (empty scans): the filter's error model at its widest
+    assert r.heading_information == 0.0 and r.fusion_filter_sigma_deg == pytest.approx(100 * 8.0)
+    fused, jumps = fused_estimate(run.odometry, r.estimates["smoothed"], motion, informed(cfg.fusion, np.zeros(n)))
     np.testing.assert_array_equal(r.estimates["fused"], fused)
     assert r.fusion_jumps == jumps
     yaw = {k: np.abs(wrap_angle(v[:, 2] - run.odometry[:, 2])) for k, v in r.estimates.items()}

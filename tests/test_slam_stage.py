@@ -256,6 +256,10 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
     for k in ("pos_rmse_m", "yaw_rmse_deg", "pos_rmse_whole_m", "yaw_rmse_whole_deg"):
         assert from_kept[k] == pytest.approx(in_run[k], rel=1e-9, abs=1e-12)
     assert json.loads(from_kept["config"]) == json.loads(in_run["config"])
+    # the fusion's model of the filter's error, widened by the weight's heading information along the odometry
+    assert from_kept["heading_information"] > 0
+    assert from_kept["fusion_filter_sigma_deg"] == pytest.approx(
+        1.5 * max(1.0, (400.0 / from_kept["heading_information"]) ** 0.5), rel=1e-9)
     # rich_slam_paper reads its trajectory as Algorithm 1 whatever the configured estimate: that is its own row,
     # and only the other estimate gets a row of its own (no copy of the plain row)
     out4 = tmp_path / "t3_paper.jsonl"

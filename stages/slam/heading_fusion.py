@@ -15,7 +15,8 @@ composed along the corrected heading. Where the difference grows like a gyro dri
 the filter; where it wanders inside ``filter_sigma`` it stays with the odometry. States ``[c, b, w]``, exact
 discretisation of the integrated random walk; a forward Kalman filter and a Rauch-Tung-Striebel pass. The
 forward pass also gives the model's evidence ``log p(d | model)``; choosing the model per run by it was
-measured and not adopted (stages/slam/README.md, stop 46).
+measured and not adopted (stages/slam/README.md, stop 46). :func:`informed` widens ``filter_sigma`` on a run whose
+filter weight holds little heading information (stop 47).
 """
 
 from __future__ import annotations
@@ -49,6 +50,24 @@ class HeadingFusion(BaseModel):
     measurement_sigma: float = Field(1e-3, gt=0, description="white part of the filter's heading error, rad")
     jump_gate: float = Field(5.0, ge=0, description="a heading difference further than this many predicted sigmas "
                              "from the prediction is a jump of the filter's own error, taken by it alone (0: off)")
+    information_ref: float = Field(400.0, ge=0, description="yaw information of the filter's weight (rad^-2, per "
+                                   "scan, the run's median) below which filter_sigma grows as 1/sqrt(information) "
+                                   "(:func:`informed`; chosen on the calibration runs, stop 47; 0: off)")
+
+
+def informed(model: HeadingFusion, information: npt.ArrayLike) -> HeadingFusion:
+    """``model`` with the filter's heading-error std widened where its weight holds little heading:
+    ``filter_sigma * max(1, sqrt(information_ref / median(information)))``, the median over the run's scans of the
+    weight's yaw Fisher information (:func:`heading_information.yaw_information`). A Cramer-Rao-like scaling: the
+    default model where the weight is as informative as the calibration runs that set it, a wider error (the
+    fusion then keeps more of the odometry's heading) where it is not. ``information_ref = 0``: ``model``."""
+    info = np.asarray(information, np.float64)
+    if model.information_ref <= 0 or info.size == 0:
+        return model
+    # a weight without any heading information: the filter's heading is its proposal's walk (factor 100 caps it)
+    median = max(float(np.median(info)), model.information_ref * 1e-4)
+    factor = max(1.0, math.sqrt(model.information_ref / median))
+    return model.model_copy(update={"filter_sigma": model.filter_sigma * factor})
 
 
 class FusedHeading(NamedTuple):

@@ -20,7 +20,8 @@ from stages.slam.backend import Backend, Device, resolve_device
 from stages.slam.beam_sampling import BeamSamples, to_world
 from stages.slam.delayed_maps import DelayedMaps
 from stages.slam.grid_map import GridModel, GridParticleMaps, make_grid_spec
-from stages.slam.heading_fusion import HeadingFusion, fuse_heading, recompose
+from stages.slam.heading_fusion import HeadingFusion, fuse_heading, informed, recompose
+from stages.slam.heading_information import yaw_information
 from stages.slam.parallel import ParallelHilbertMaps, submap_factory
 from stages.slam.pose_refinement import PoseRefinement
 from stages.slam.rbpf import (
@@ -206,6 +207,10 @@ class MethodResult:
     submap_revisits: int = 0
     #: scans where the fused estimate found the filter's heading jumping (:func:`heading_fusion.fuse_heading`)
     fusion_jumps: int = 0
+    #: the fused estimate's model of the filter's heading error: its std (deg, :func:`heading_fusion.informed`) and
+    #: the median per-scan yaw information of the method's weight along the odometry (rad^-2; None: not computed)
+    fusion_filter_sigma_deg: float | None = None
+    heading_information: float | None = None
 
 
 def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]:
@@ -349,8 +354,13 @@ def run_method(
     estimates = {"best_per_scan": h.best_trajectory(), "final_best_history": h.final_best_history(),
                  "weighted_mean": h.mean_trajectory(), "smoothed": h.smoothed_trajectory()}
     fusion_jumps = 0
+    fusion = cfg.fusion
+    information = None
     if motion is not None:
-        estimates["fused"], fusion_jumps = fused_estimate(odometry, estimates["smoothed"], motion, cfg.fusion)
+        if fusion.information_ref > 0:
+            information = weight_information(method, cfg, basis, odometry, scans)
+            fusion = informed(fusion, information)
+        estimates["fused"], fusion_jumps = fused_estimate(odometry, estimates["smoothed"], motion, fusion)
     poses = estimates[cfg.estimate]
     return MethodResult(
         method, poses, np.asarray(h.n_eff), time.perf_counter() - t0, int(np.sum(h.resampled)),
@@ -358,7 +368,27 @@ def run_method(
         form if method in HILBERT_METHODS else "", device,
         np.asarray(h.yaw_bias) if proposal.bias is not None else None, estimates,
         *_submap_counts(maps), fusion_jumps,
+        float(np.degrees(fusion.filter_sigma)) if motion is not None else None,
+        float(np.median(information)) if information is not None else None,
     )
+
+
+def weight_information(method: str, cfg: SlamConfig, basis: hm.HilbertBasis, odometry: F64,
+                       scans: Sequence[BeamSamples]) -> F64:
+    """Per-scan yaw information of ``method``'s own weight along the odometry
+    (:func:`heading_information.yaw_information`, three particles of its map model, in process); the fused
+    estimate's :func:`heading_fusion.informed` reads it."""
+    cfg = replace(cfg.for_method(method), workers=0)
+    maps: GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps | HybridParticleMaps \
+        | DelayedMaps
+    if method == "fastslam_grid":
+        maps = GridParticleMaps(make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution), 3, cfg.grid,
+                                cfg.grid_likelihood_exponent)
+    elif method in HILBERT_METHODS:
+        maps = make_hilbert_maps(cfg, basis, method, 3, "covariance")
+    else:
+        raise ValueError(f"weight_information: {method!r} has no scan weight")
+    return yaw_information(maps, odometry, scans)
 
 
 def fused_estimate(odometry: F64, smoothed: F64, motion: OdometryMotion, model: HeadingFusion

@@ -206,6 +206,11 @@ class SlamParams(StageParams):
     fusion_increment_scale: float = Field(0.1, gt=0, description="estimate = fused: factor on the odometry's "
                                           "per-increment yaw variances in the fusion's model of its error (below 1: "
                                           "they over-cover yaw; stages/slam/README.md stop 46)")
+    fusion_information_ref: float = Field(400.0, ge=0, description="estimate = fused: the yaw information of the "
+                                          "filter's scan weight (rad^-2 per scan, the run's median along the "
+                                          "odometry) below which fusion_filter_sigma grows as 1/sqrt(information): "
+                                          "the fusion keeps more of the odometry's heading where the weight holds "
+                                          "little (stages/slam/README.md, stop 47; 0: off)")
     fusion_jump_gate: float = Field(5.0, ge=0, description="estimate = fused: a heading step of the filter past "
                                     "this many predicted sigmas is its own error's jump (0: off)")
     # -- FastSLAM grid baseline
@@ -308,7 +313,8 @@ class SlamParams(StageParams):
             fusion=HeadingFusion(bias_sigma0=self.fusion_bias_sigma0, bias_walk=self.fusion_bias_walk,
                                  filter_sigma=math.radians(self.fusion_filter_sigma),
                                  filter_tau=self.fusion_filter_tau, jump_gate=self.fusion_jump_gate,
-                                 increment_scale=self.fusion_increment_scale),
+                                 increment_scale=self.fusion_increment_scale,
+                                 information_ref=self.fusion_information_ref),
         )
 
 
@@ -364,6 +370,11 @@ class SlamStage(Stage):
                     **({"submaps_opened": res.submaps_opened} if res.submaps_opened else {}),
                     **({"submap_revisits": res.submap_revisits} if res.submap_revisits else {}),
                     **({"fusion_jumps": res.fusion_jumps} if p.estimate == "fused" and m != "odometry" else {}),
+                    **({"fusion_filter_sigma_deg": round(res.fusion_filter_sigma_deg, 3)}
+                       if p.estimate == "fused" and res.fusion_filter_sigma_deg is not None and m != "odometry"
+                       else {}),
+                    **({"heading_information": round(res.heading_information, 2)}
+                       if res.heading_information is not None and m != "odometry" else {}),
                 }
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
                                   f"s/scan), {res.resampled} resamplings[/]")

@@ -45,7 +45,16 @@ from stages.evaluate.rich_slam_paper import (
 from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, evaluate_trajectory_whole, quat_to_yaw
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.methods import ESTIMATES, METHODS, OdometryMotion, domain_from_trajectory, fused_estimate, run_method
+from stages.slam.heading_fusion import informed
+from stages.slam.methods import (
+    ESTIMATES,
+    METHODS,
+    OdometryMotion,
+    domain_from_trajectory,
+    fused_estimate,
+    run_method,
+    weight_information,
+)
 from stages.slam.stage import SlamParams, beam_samples_by_scan, read_odometry_file
 from stages.slam.unit_study import read_run_folder
 
@@ -319,6 +328,8 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
     written = 0
     for run_dir in runs:
         odometry: tuple[npt.NDArray[np.int64], F64, OdometryMotion] | None = None  # read once per run folder
+        scans: list[BeamSamples] | None = None
+        information: dict[tuple[str, str], F64] = {}  # per (method, the kept run's configuration)
         for m in methods:
             for path in sorted((keep / run_dir.name).glob(f"{m}*_seed*.npz")):
                 kept = np.load(path)
@@ -341,12 +352,25 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
                 if not np.array_equal(t_ns, kept["t_ns"]):
                     raise ValueError(f"{path}: its scan stamps are not those of {run_dir}/odometry; keep the "
                                      "trajectories of this odometry again")
-                model = SlamParams(**{**base, **fusion_keys}).config().fusion
+                params = SlamParams(**{**base, **fusion_keys})
+                model = params.config().fusion
+                extra: dict[str, float] = {}
+                if model.information_ref > 0:  # the weight's heading information along the odometry, as the run has it
+                    key = (m, json.dumps(base, sort_keys=True))
+                    if key not in information:
+                        if scans is None:
+                            scans = load_inputs(run_dir, p)[2]
+                        basis = hm.make_basis(*domain_from_trajectory(odo[:, :2], params.domain_padding),
+                                              params.n_basis, params.basis_kind)
+                        information[key] = weight_information(m, params.config(), basis, odo, scans)
+                    model = informed(model, information[key])
+                    extra = {"heading_information": float(np.median(information[key])),
+                             "fusion_filter_sigma_deg": float(np.degrees(model.filter_sigma))}
                 fused, jumps = fused_estimate(odo, kept["pose"], motion, model)
                 truth: Truth = (kept["truth_t_ns"], kept["truth_xy"], kept["truth_yaw"])
                 row = {"seq": run_dir.name, "method": label, "seed": seed, "config": config,
                        **error_fields(t_ns, np.asarray(fused, np.float64), truth), "scans": len(odo),
-                       "fusion_jumps": jumps, "from_kept": path.name}
+                       "fusion_jumps": jumps, **extra, "from_kept": path.name}
                 append_row(out, row)
                 written += 1
                 say_row(row, f"from {path.name}")
