@@ -354,12 +354,9 @@ def run_method(
     estimates = {"best_per_scan": h.best_trajectory(), "final_best_history": h.final_best_history(),
                  "weighted_mean": h.mean_trajectory(), "smoothed": h.smoothed_trajectory()}
     fusion_jumps = 0
-    fusion = cfg.fusion
-    information = None
+    fusion, information = cfg.fusion, None
     if motion is not None:
-        if fusion.information_ref > 0:
-            information = weight_information(method, cfg, basis, odometry, scans)
-            fusion = informed(fusion, information)
+        fusion, information = informed_fusion(method, cfg, basis, odometry, scans)
         estimates["fused"], fusion_jumps = fused_estimate(odometry, estimates["smoothed"], motion, fusion)
     poses = estimates[cfg.estimate]
     return MethodResult(
@@ -390,6 +387,17 @@ def weight_information(method: str, cfg: SlamConfig, basis: hm.HilbertBasis, odo
     else:
         raise ValueError(f"weight_information: {method!r} has no scan weight")
     return yaw_information(maps, odometry, scans)
+
+
+def informed_fusion(method: str, cfg: SlamConfig, basis: hm.HilbertBasis, odometry: F64,
+                    scans: Sequence[BeamSamples]) -> tuple[HeadingFusion, F64 | None]:
+    """``cfg.fusion`` widened by ``method``'s weight information along the odometry (:func:`weight_information`,
+    :func:`heading_fusion.informed`), and that information; ``cfg.fusion`` and None when
+    ``fusion.information_ref`` is 0. The filter run and ``table3 --from-kept`` both take the model from here."""
+    if cfg.fusion.information_ref <= 0:
+        return cfg.fusion, None
+    information = weight_information(method, cfg, basis, odometry, scans)
+    return informed(cfg.fusion, information), information
 
 
 def fused_estimate(odometry: F64, smoothed: F64, motion: OdometryMotion, model: HeadingFusion

@@ -45,15 +45,15 @@ from stages.evaluate.rich_slam_paper import (
 from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, evaluate_trajectory_whole, quat_to_yaw
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.heading_fusion import informed
+from stages.slam.heading_fusion import HeadingFusion
 from stages.slam.methods import (
     ESTIMATES,
     METHODS,
     OdometryMotion,
     domain_from_trajectory,
     fused_estimate,
+    informed_fusion,
     run_method,
-    weight_information,
 )
 from stages.slam.stage import SlamParams, beam_samples_by_scan, read_odometry_file
 from stages.slam.unit_study import read_run_folder
@@ -329,7 +329,8 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
     for run_dir in runs:
         odometry: tuple[npt.NDArray[np.int64], F64, OdometryMotion] | None = None  # read once per run folder
         scans: list[BeamSamples] | None = None
-        information: dict[tuple[str, str], F64] = {}  # per (method, the kept run's configuration)
+        # the fusion model and the weight's information, per (method, the kept run's configuration)
+        fusions: dict[tuple[str, str], tuple[HeadingFusion, F64 | None]] = {}
         for m in methods:
             for path in sorted((keep / run_dir.name).glob(f"{m}*_seed*.npz")):
                 kept = np.load(path)
@@ -352,20 +353,19 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
                 if not np.array_equal(t_ns, kept["t_ns"]):
                     raise ValueError(f"{path}: its scan stamps are not those of {run_dir}/odometry; keep the "
                                      "trajectories of this odometry again")
-                params = SlamParams(**{**base, **fusion_keys})
-                model = params.config().fusion
-                extra: dict[str, float] = {}
-                if model.information_ref > 0:  # the weight's heading information along the odometry, as the run has it
-                    key = (m, json.dumps(base, sort_keys=True))
-                    if key not in information:
-                        if scans is None:
-                            scans = load_inputs(run_dir, p)[2]
-                        basis = hm.make_basis(*domain_from_trajectory(odo[:, :2], params.domain_padding),
-                                              params.n_basis, params.basis_kind)
-                        information[key] = weight_information(m, params.config(), basis, odo, scans)
-                    model = informed(model, information[key])
-                    extra = {"heading_information": float(np.median(information[key])),
-                             "fusion_filter_sigma_deg": float(np.degrees(model.filter_sigma))}
+                key = (m, json.dumps(base, sort_keys=True))
+                if key not in fusions:  # as the filter run takes it: the weight's information along the odometry
+                    params = SlamParams(**{**base, **fusion_keys})
+                    cfg = params.config()
+                    if cfg.fusion.information_ref > 0 and scans is None:
+                        scans = load_inputs(run_dir, p)[2]
+                    basis = hm.make_basis(*domain_from_trajectory(odo[:, :2], params.domain_padding), params.n_basis,
+                                          params.basis_kind)
+                    fusions[key] = informed_fusion(m, cfg, basis, odo, scans or [])
+                model, information = fusions[key]
+                extra = {} if information is None else {
+                    "heading_information": float(np.median(information)),
+                    "fusion_filter_sigma_deg": float(np.degrees(model.filter_sigma))}
                 fused, jumps = fused_estimate(odo, kept["pose"], motion, model)
                 truth: Truth = (kept["truth_t_ns"], kept["truth_xy"], kept["truth_yaw"])
                 row = {"seq": run_dir.name, "method": label, "seed": seed, "config": config,
