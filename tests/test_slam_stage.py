@@ -260,6 +260,8 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
     assert from_kept["heading_information"] > 0
     assert from_kept["fusion_filter_sigma_deg"] == pytest.approx(
         1.5 * max(1.0, (400.0 / from_kept["heading_information"]) ** 0.5), rel=1e-9)
+    for k in ("heading_information", "fusion_filter_sigma_deg"):  # the filter run's row says the same
+        assert in_run[k] == pytest.approx(from_kept[k], rel=1e-9)
     # rich_slam_paper reads its trajectory as Algorithm 1 whatever the configured estimate: that is its own row,
     # and only the other estimate gets a row of its own (no copy of the plain row)
     out4 = tmp_path / "t3_paper.jsonl"

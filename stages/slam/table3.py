@@ -286,6 +286,10 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                 row = {"seq": run_dir.name, "method": label, "seed": s, "config": row_config,
                        **error_fields(t_ns, est, truth), "s_per_scan": seconds / len(odo),
                        "resamplings": res.resampled, "scans": len(odo)}
+                if est_name == "fused" and res.heading_information is not None:  # as the --from-kept rows give them
+                    row["heading_information"] = res.heading_information
+                    if res.fusion_filter_sigma_deg is not None:
+                        row["fusion_filter_sigma_deg"] = res.fusion_filter_sigma_deg
                 if anchored:  # beside the Table III protocol: no alignment (every filter starts at the anchor)
                     row["pos_rmse_anchored_m"], row["yaw_rmse_anchored_deg"] = anchored_errors(
                         t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
