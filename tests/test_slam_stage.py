@@ -262,6 +262,17 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
         1.5 * max(1.0, (400.0 / from_kept["heading_information"]) ** 0.5), rel=1e-9)
     for k in ("heading_information", "fusion_filter_sigma_deg"):  # the filter run's row says the same
         assert in_run[k] == pytest.approx(from_kept[k], rel=1e-9)
+    # fusion_information_ref = 0: the configured model itself, no information computed nor recorded, both ways
+    out7, out8 = tmp_path / "t3_kept_ref0.jsonl", tmp_path / "t3_fused_ref0.jsonl"
+    ref0 = [*base5, "--set", "fusion_information_ref=0"]
+    assert table3.main([*ref0, "--out", str(out7), "--from-kept", str(keep)]) == 0
+    assert table3.main([*ref0, "--out", str(out8), "--estimates", "fused"]) == 0
+    kept0 = next(r for r in map(json.loads, out7.read_text().splitlines()) if r["method"] == "fastslam_grid, fused")
+    run0 = next(r for r in map(json.loads, out8.read_text().splitlines()) if r["method"] == "fastslam_grid, fused")
+    assert json.loads(kept0["config"])["fusion_information_ref"] == 0
+    assert "heading_information" not in kept0 and "heading_information" not in run0
+    for k in ("yaw_rmse_whole_deg", "pos_rmse_whole_m"):
+        assert kept0[k] == pytest.approx(run0[k], rel=1e-9, abs=1e-12)
     # rich_slam_paper reads its trajectory as Algorithm 1 whatever the configured estimate: that is its own row,
     # and only the other estimate gets a row of its own (no copy of the plain row)
     out4 = tmp_path / "t3_paper.jsonl"

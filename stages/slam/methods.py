@@ -365,9 +365,15 @@ def run_method(
         form if method in HILBERT_METHODS else "", device,
         np.asarray(h.yaw_bias) if proposal.bias is not None else None, estimates,
         *_submap_counts(maps), fusion_jumps,
-        float(np.degrees(fusion.filter_sigma)) if motion is not None else None,
-        float(np.median(information)) if information is not None else None,
+        *(fusion_record(fusion, information) if motion is not None else (None, None)),
     )
+
+
+def fusion_record(model: HeadingFusion, information: F64 | None) -> tuple[float, float | None]:
+    """What a fused row records of its model (:func:`informed_fusion`): the fusion's filter-error std (deg) and
+    the weight's median heading information (rad^-2; None where none was computed). The filter run and
+    ``table3 --from-kept`` both take it from here."""
+    return float(np.degrees(model.filter_sigma)), None if information is None else float(np.median(information))
 
 
 def weight_information(method: str, cfg: SlamConfig, basis: hm.HilbertBasis, odometry: F64,

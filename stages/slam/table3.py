@@ -52,6 +52,7 @@ from stages.slam.methods import (
     OdometryMotion,
     domain_from_trajectory,
     fused_estimate,
+    fusion_record,
     informed_fusion,
     run_method,
 )
@@ -361,15 +362,18 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
                 if key not in fusions:  # as the filter run takes it: the weight's information along the odometry
                     params = SlamParams(**{**base, **fusion_keys})
                     cfg = params.config()
-                    if cfg.fusion.information_ref > 0 and scans is None:
-                        scans = load_inputs(run_dir, p)[2]
-                    basis = hm.make_basis(*domain_from_trajectory(odo[:, :2], params.domain_padding), params.n_basis,
-                                          params.basis_kind)
-                    fusions[key] = informed_fusion(m, cfg, basis, odo, scans or [])
+                    if cfg.fusion.information_ref > 0:
+                        if scans is None:
+                            scans = load_inputs(run_dir, p)[2]
+                        basis = hm.make_basis(*domain_from_trajectory(odo[:, :2], params.domain_padding),
+                                              params.n_basis, params.basis_kind)
+                        fusions[key] = informed_fusion(m, cfg, basis, odo, scans)
+                    else:
+                        fusions[key] = (cfg.fusion, None)
                 model, information = fusions[key]
-                extra = {} if information is None else {
-                    "heading_information": float(np.median(information)),
-                    "fusion_filter_sigma_deg": float(np.degrees(model.filter_sigma))}
+                sigma_deg, median_information = fusion_record(model, information)
+                extra = {} if median_information is None else {
+                    "heading_information": median_information, "fusion_filter_sigma_deg": sigma_deg}
                 fused, jumps = fused_estimate(odo, kept["pose"], motion, model)
                 truth: Truth = (kept["truth_t_ns"], kept["truth_xy"], kept["truth_yaw"])
                 row = {"seq": run_dir.name, "method": label, "seed": seed, "config": config,
