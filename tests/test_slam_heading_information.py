@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -73,3 +75,30 @@ def test_the_grid_weight_holds_more_heading_than_the_hilbert_weight_on_the_same_
     assert np.median(grid[1:]) > 3 * np.median(hil[1:]) > 0
     with pytest.raises(ValueError, match="no scan weight"):
         weight_information("odometry", cfg, basis, poses, scans)
+
+
+def test_informed_exponent_switches_on_the_weights_information_before_the_filter() -> None:
+    """``informed_exponent_information``: a filter whose weight's median information along the odometry reaches
+    the threshold runs exactly as one configured with ``informed_likelihood_exponent``; below it, as the default;
+    ``rich_slam_paper`` never switches."""
+    from stages.slam.methods import informed_exponent, run_method
+
+    cfg = SlamConfig(endpoint_tolerance=0.0, workers=0, n_particles=8, n_basis=16, likelihood_exponent=0.5,
+                     estimate="smoothed")
+    scans, poses = _scans(_corner()), np.zeros((N_SCANS, 3))
+    basis = hm.make_basis(np.array([8.0, 8.0]), np.zeros(2), cfg.n_basis, cfg.basis_kind)
+    median = float(np.median(weight_information("rich_slam", cfg, basis, poses, scans)))
+    assert median > 0
+    on = replace(cfg, informed_exponent_information=0.5 * median, informed_likelihood_exponent=1.0)
+    off = replace(cfg, informed_exponent_information=2.0 * median, informed_likelihood_exponent=1.0)
+    assert informed_exponent("rich_slam", on, basis, poses, scans).likelihood_exponent == 1.0
+    assert informed_exponent("rich_slam", off, basis, poses, scans).likelihood_exponent == 0.5
+    assert informed_exponent("rich_slam_paper", on, basis, poses, scans) == cfg.for_method("rich_slam_paper")
+    assert informed_exponent("fastslam_grid", on, basis, poses, scans) == on
+    odometry = np.c_[0.05 * np.arange(N_SCANS), np.zeros(N_SCANS), np.zeros(N_SCANS)]
+    runs = {k: run_method("rich_slam", odometry, scans, basis, c, seed=3)
+            for k, c in {"on": on, "off": off, "one": replace(cfg, likelihood_exponent=1.0), "half": cfg}.items()}
+    assert runs["on"].likelihood_exponent == 1.0 and runs["off"].likelihood_exponent == 0.5
+    np.testing.assert_array_equal(runs["on"].poses, runs["one"].poses)
+    np.testing.assert_array_equal(runs["off"].poses, runs["half"].poses)
+    assert not np.array_equal(runs["on"].n_eff, runs["off"].n_eff)  # the exponent changed the weights

@@ -128,6 +128,11 @@ class SlamConfig:
     map_delay: int = 0
     #: the error models of the ``fused`` estimate (:mod:`heading_fusion`)
     fusion: HeadingFusion = field(default_factory=HeadingFusion)
+    #: the informed exponent (:func:`informed_exponent`): a Hilbert filter whose weight's median yaw information
+    #: along the odometry is at least this (rad^-2, at ``likelihood_exponent``) runs with
+    #: ``informed_likelihood_exponent`` instead (None: off; never ``rich_slam_paper`` nor ``rich_slam_refined``)
+    informed_exponent_information: float | None = None
+    informed_likelihood_exponent: float = 1.0
 
     def for_method(self, method: str) -> SlamConfig:
         """The configuration a method runs with: ``rich_slam_paper`` (:data:`PAPER_METHODS`) is the paper's
@@ -136,10 +141,11 @@ class SlamConfig:
         undelayed; every other method runs with this one."""
         if method in REFINED_METHODS:
             # the refinement works on one basis, the global map, and reads its means: no submaps, no delayed map
-            return replace(self, submaps=None, map_delay=0)
+            return replace(self, submaps=None, map_delay=0, informed_exponent_information=None)
         if method not in PAPER_METHODS:
             return self
         return replace(self, proposal="gmapping", yaw_bias=None, estimate="best_per_scan", likelihood_exponent=1.0,
+                       informed_exponent_information=None,
                        submaps=None, support_variance=None, resample_keep_mean=False, outlier=0.0,
                        grid_share=0.0, map_delay=0, endpoint_tolerance=PAPER_ENDPOINT_TOLERANCE)
 
@@ -211,6 +217,8 @@ class MethodResult:
     #: the median per-scan yaw information of the method's weight along the odometry (rad^-2; None: not computed)
     fusion_filter_sigma_deg: float | None = None
     heading_information: float | None = None
+    #: the exponent on the scan likelihood the filter ran with (Hilbert methods; :func:`informed_exponent`)
+    likelihood_exponent: float | None = None
 
 
 def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]:
@@ -310,6 +318,7 @@ def run_method(
     if cfg.estimate == "fused" and motion is None:  # refused before the filter runs, not after
         raise ValueError(f"{method}: estimate = fused needs the odometry's increment covariance (odometry stage v4); "
                          "rerun `pipeline run odometry --force` or set slam.estimate = smoothed")
+    cfg = informed_exponent(method, cfg, basis, odometry, scans)
     proposal = make_proposal(method, cfg, motion, rng)
     form: Literal["information", "covariance"] = "information"
     maps: (GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps | SubmapParticleMaps | HybridParticleMaps
@@ -359,14 +368,31 @@ def run_method(
         fusion, information = informed_fusion(method, cfg, basis, odometry, scans)
         estimates["fused"], fusion_jumps = fused_estimate(odometry, estimates["smoothed"], motion, fusion)
     poses = estimates[cfg.estimate]
+    sigma_deg, median_information = fusion_record(fusion, information) if motion is not None else (None, None)
     return MethodResult(
         method, poses, np.asarray(h.n_eff), time.perf_counter() - t0, int(np.sum(h.resampled)),
         np.asarray(h.particles), best_map.get("theta"), best_map.get("cov"),
         form if method in HILBERT_METHODS else "", device,
         np.asarray(h.yaw_bias) if proposal.bias is not None else None, estimates,
-        *_submap_counts(maps), fusion_jumps,
-        *(fusion_record(fusion, information) if motion is not None else (None, None)),
+        *_submap_counts(maps), fusion_jumps, sigma_deg, median_information,
+        likelihood_exponent=cfg.likelihood_exponent if method in HILBERT_METHODS else None,
     )
+
+
+def informed_exponent(method: str, cfg: SlamConfig, basis: hm.HilbertBasis, odometry: F64,
+                      scans: Sequence[BeamSamples]) -> SlamConfig:
+    """``cfg`` with eq. 22's exponent chosen by the weight's heading information (stop 49): a Hilbert filter
+    whose weight's median yaw information along the odometry (:func:`weight_information`, at
+    ``likelihood_exponent``) is at least ``informed_exponent_information`` runs with
+    ``informed_likelihood_exponent``: a weight that holds the heading is tempered less. The switch is read
+    once, before the filter, from the odometry and the scans alone; ``cfg`` itself where it is off."""
+    cfg = cfg.for_method(method)
+    if cfg.informed_exponent_information is None or method not in HILBERT_METHODS:
+        return cfg
+    information = weight_information(method, cfg, basis, odometry, scans)
+    high = information.size > 0 and float(np.median(information)) >= cfg.informed_exponent_information
+    return replace(cfg, informed_exponent_information=None,
+                   likelihood_exponent=cfg.informed_likelihood_exponent if high else cfg.likelihood_exponent)
 
 
 def fusion_record(model: HeadingFusion, information: F64 | None) -> tuple[float, float | None]:

@@ -126,6 +126,12 @@ class SlamParams(StageParams):
         0.5, gt=0, description="exponent on the scan likelihood of the Hilbert filters (1: the paper, eq. 22; 0.5 "
         "tempers the weight for beams that are not independent, chosen on the calibration runs, stages/slam/README.md;"
         " rich_slam_paper: always 1)")
+    informed_exponent_information: float | None = Field(
+        None, gt=0, description="rich_slam: run with informed_likelihood_exponent where the weight's median yaw "
+        "information along the odometry (rad^-2, at likelihood_exponent; computed before the filter) is at least "
+        "this; None: off (stages/slam/README.md, stop 49)")
+    informed_likelihood_exponent: float = Field(
+        1.0, gt=0, description="the exponent on the scan likelihood where informed_exponent_information switches")
     grid_likelihood_exponent: float = Field(1.0, gt=0, description="fastslam_grid: exponent on its scan likelihood "
                                             "(1 was better on the calibration runs)")
     grid_share: float = Field(0.0, ge=0, lt=1, description="share of each scan's log-likelihood that rich_slam takes "
@@ -289,6 +295,8 @@ class SlamParams(StageParams):
             basis_kind=self.basis_kind, endpoint_tolerance=self.endpoint_tolerance,
             et_ring_points=self.et_ring_points, et_rings=self.et_rings, et_variance=self.et_variance,
             likelihood_exponent=self.likelihood_exponent, grid_likelihood_exponent=self.grid_likelihood_exponent,
+            informed_exponent_information=self.informed_exponent_information,
+            informed_likelihood_exponent=self.informed_likelihood_exponent,
             noise=MotionNoise(self.motion_std_xy, self.motion_std_yaw, self.motion_rel_trans, self.motion_rel_rot,
                               self.motion_rot_per_trans, self.motion_trans_per_rot),
             proposal=self.proposal, proposal_scale=self.proposal_scale,
@@ -375,6 +383,7 @@ class SlamStage(Stage):
                        else {}),
                     **({"heading_information": round(res.heading_information, 2)}
                        if res.heading_information is not None and m != "odometry" else {}),
+                    **({"likelihood_exponent": res.likelihood_exponent} if res.likelihood_exponent is not None else {}),
                 }
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
                                   f"s/scan), {res.resampled} resamplings[/]")
