@@ -158,8 +158,8 @@ def test_informed_widens_the_filter_error_as_one_over_the_square_root_of_the_inf
 def test_a_filter_whose_weight_holds_little_heading_is_trusted_less() -> None:
     """A good odometry (no drift) and a filter whose heading wanders 6 deg over a minute, as a flat weight lets it:
     the informed model (median information a sixteenth of the reference: filter_sigma x4) keeps the fused heading
-    nearer the odometry, so nearer the truth, than the default model, on every one of four runs; a gyro drift of
-    86 deg over the 300 s is still followed (to within 30 % of its RMS; the default model does better there)."""
+    nearer the odometry, so nearer the truth, than the uninformed model, on every one of four runs; a gyro drift of
+    86 deg over the 300 s is still followed (to within 30 % of its RMS; the uninformed one does better there)."""
     ratios = []
     for seed in range(11, 15):
         rng = np.random.default_rng(seed)
@@ -167,7 +167,9 @@ def test_a_filter_whose_weight_holds_little_heading_is_trusted_less() -> None:
         odo = _odometry(rng)
         var = np.full(N, 1e-7)
         wander = _ou(rng, np.deg2rad(6.0), 60.0)
-        m = HeadingFusion()
+        # the model of stops 43-48 (a looser bias walk and a wider filter error than today's defaults), whose
+        # jump gate stays quiet on this wander: the property is informed()'s widening, not the defaults'
+        m = HeadingFusion(bias_walk=3e-4, filter_sigma=np.deg2rad(8.0))
         low = informed(m, np.full(N, m.information_ref / 16))
         plain = fuse_heading(t, odo[:, 2], odo[:, 2] + wander, var, m).correction
         wide = fuse_heading(t, odo[:, 2], odo[:, 2] + wander, var, low).correction

@@ -203,10 +203,10 @@ class SlamParams(StageParams):
         "(the odometry's increments composed along it); rich_slam_paper: always the first")
     fusion_bias_sigma0: float = Field(0.003, ge=0, description="estimate = fused: initial std of the odometry's "
                                       "unmodelled yaw-rate bias, rad/s")
-    fusion_bias_walk: float = Field(3e-4, ge=0, description="estimate = fused: random-walk density of that bias, "
-                                    "rad/s/sqrt(s)")
-    fusion_filter_sigma: float = Field(8.0, gt=0, description="estimate = fused: stationary std of the filter's "
-                                       "heading error, deg")
+    fusion_bias_walk: float = Field(1e-5, ge=0, description="estimate = fused: random-walk density of that bias, "
+                                    "rad/s/sqrt(s) (re-fitted on twelve calibration runs at stop 49; 3e-4 before)")
+    fusion_filter_sigma: float = Field(4.0, gt=0, description="estimate = fused: stationary std of the filter's "
+                                       "heading error, deg (stop 49; 8 before)")
     fusion_filter_tau: float = Field(100.0, gt=0, description="estimate = fused: correlation time of the filter's "
                                      "heading error, s")
     fusion_increment_scale: float = Field(0.1, gt=0, description="estimate = fused: factor on the odometry's "
