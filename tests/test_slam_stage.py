@@ -184,7 +184,7 @@ def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
         SlamParams(backend="torch", methods=["rich_slam"], endpoint_noise_variance=0.09)
 
 
-def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
+def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``python -m stages.slam.table3``: one row per (sequence, method, seed), finished rows skipped."""
     from stages.slam import table3
 
@@ -286,3 +286,10 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path) -> None:
     png = tmp_path / "t3.png"
     assert table3.main(["--table", str(out), "--figure", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not list(tmp_path.glob("*.tmp.png"))
+    # --labels keeps only the named rows (the table and the figure); a label no row has is a one-line error
+    capsys.readouterr()
+    assert table3.main(["--table", str(out), "--labels", "fastslam_grid"]) == 0
+    printed = capsys.readouterr().out
+    assert "| fastslam_grid |" in printed and "| odometry |" not in printed
+    assert table3.main(["--table", str(out), "--labels", "odometry;rich_slam, fused"]) == 2
+    assert "no row is labelled 'rich_slam, fused'" in capsys.readouterr().err

@@ -523,6 +523,8 @@ def main(argv: list[str] | None = None) -> int:
                     "exit (several: one table; a row repeated in a later file replaces the earlier one; cells that "
                     "mix configurations are refused)")
     ap.add_argument("--figure", type=Path, help="with --table: also draw it into this PNG")
+    ap.add_argument("--labels", help="with --table: only the rows of these methods, as the rows label them, "
+                    "separated by ';' (e.g. 'odometry;rich_slam, fused;rich_slam_paper'); default: every row")
     ap.add_argument("--gain-figure", type=Path, help="with --table and --nees: draw rich_slam's whole-trajectory yaw "
                     "RMSE over the odometry's against the odometry's heading NEES over 10 s windows into this PNG")
     ap.add_argument("--nees", type=Path, help="rows of `python -m stages.odometry.nees ... --windows --json`")
@@ -542,6 +544,14 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         for n in notes:
             print(f"note: {n}", file=sys.stderr)
+        if a.labels:
+            keep = [lab.strip() for lab in a.labels.split(";") if lab.strip()]
+            missing = [lab for lab in keep if not any(r["method"] == lab for r in rows)]
+            if missing:
+                print(f"error: --labels: no row is labelled {missing[0]!r}; the rows have "
+                      f"{', '.join(sorted({r['method'] for r in rows}))}", file=sys.stderr)
+                return 2
+            rows = [r for r in rows if r["method"] in keep]
         has_whole = any(KEYS["whole"][0] in r for r in rows)
         if has_whole:  # the headline first
             print(f"{TITLES['whole']}:\n\n{table(rows, alignment='whole')}\n")
