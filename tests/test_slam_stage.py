@@ -273,6 +273,19 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest
     assert "heading_information" not in kept0 and "heading_information" not in run0
     for k in ("yaw_rmse_whole_deg", "pos_rmse_whole_m"):
         assert kept0[k] == pytest.approx(run0[k], rel=1e-9, abs=1e-12)
+    # a Hilbert filter under the informed exponent: --from-kept takes the exponent the filter ran with
+    keep9, out9, out10 = tmp_path / "kept9", tmp_path / "t3_kept9.jsonl", tmp_path / "t3_fused9.jsonl"
+    base9 = [str(tmp_path / "seq_a"), "--methods", "rich_slam", "--seeds", "0", "--set", "n_particles=4", "--set",
+             "workers=0", "--set", "n_basis=16", "--set", "informed_exponent_information=1e-9", "--set",
+             'estimate="smoothed"']
+    assert table3.main([*base9, "--out", str(out9), "--keep", str(keep9)]) == 0
+    assert table3.main([*base9, "--out", str(out9), "--from-kept", str(keep9)]) == 0
+    assert table3.main([*base9, "--out", str(out10), "--estimates", "fused"]) == 0
+    kept9 = next(r for r in map(json.loads, out9.read_text().splitlines()) if r["method"] == "rich_slam, fused")
+    run9 = next(r for r in map(json.loads, out10.read_text().splitlines()) if r["method"] == "rich_slam, fused")
+    assert run9["likelihood_exponent"] == 1.0
+    for k in ("heading_information", "fusion_filter_sigma_deg", "yaw_rmse_whole_deg"):
+        assert kept9[k] == pytest.approx(run9[k], rel=1e-9, abs=1e-12)
     # rich_slam_paper reads its trajectory as Algorithm 1 whatever the configured estimate: that is its own row,
     # and only the other estimate gets a row of its own (no copy of the plain row)
     out4 = tmp_path / "t3_paper.jsonl"

@@ -53,6 +53,7 @@ from stages.slam.methods import (
     domain_from_trajectory,
     fused_estimate,
     fusion_record,
+    informed_exponent,
     informed_fusion,
     run_method,
 )
@@ -369,6 +370,8 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
                             scans = load_inputs(run_dir, p)[2]
                         basis = hm.make_basis(*domain_from_trajectory(odo[:, :2], params.domain_padding),
                                               params.n_basis, params.basis_kind)
+                        # the exponent the filter ran with (informed_exponent_information), then its information
+                        cfg = informed_exponent(m, cfg, basis, odo, scans)
                         fusions[key] = informed_fusion(m, cfg, basis, odo, scans)
                     else:
                         fusions[key] = (cfg.fusion, None)
