@@ -127,7 +127,8 @@ class SlamParams(StageParams):
         "tempers the weight for beams that are not independent, chosen on the calibration runs, stages/slam/README.md;"
         " rich_slam_paper: always 1)")
     informed_exponent_information: float | None = Field(
-        None, gt=0, description="rich_slam: run with informed_likelihood_exponent where the weight's median yaw "
+        None, gt=0, description="the Hilbert filters (not rich_slam_paper nor rich_slam_refined): run with "
+        "informed_likelihood_exponent where the weight's median yaw "
         "information along the odometry (rad^-2, at likelihood_exponent; computed before the filter) is at least "
         "this; None: off (stages/slam/README.md, stop 49)")
     informed_likelihood_exponent: float = Field(

@@ -549,10 +549,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"note: {n}", file=sys.stderr)
         if a.labels:
             keep = [lab.strip() for lab in a.labels.split(";") if lab.strip()]
-            missing = [lab for lab in keep if not any(r["method"] == lab for r in rows)]
+            have = {r["method"] for r in rows}
+            missing = [lab for lab in keep if lab not in have]
             if missing:
-                print(f"error: --labels: no row is labelled {missing[0]!r}; the rows have "
-                      f"{', '.join(sorted({r['method'] for r in rows}))}", file=sys.stderr)
+                print(f"error: --labels: no row is labelled {missing[0]!r}; the rows have {', '.join(sorted(have))}",
+                      file=sys.stderr)
                 return 2
             rows = [r for r in rows if r["method"] in keep]
         has_whole = any(KEYS["whole"][0] in r for r in rows)
