@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.slam.heading_fusion import HeadingFusion, fuse_heading, informed, recompose
+from stages.slam.heading_fusion import HeadingFusion, _forward, fuse_heading, informed, recompose, step_noise
 from stages.slam.se2 import wrap_angle
 
 DT = 0.1
@@ -87,27 +87,60 @@ def test_a_jump_of_the_filter_is_its_own_error_not_the_odometrys() -> None:
     assert np.degrees(np.abs(free.correction)).max() > 2 * np.degrees(np.abs(gated.correction)).max()
 
 
-def _joint_covariance(t: np.ndarray, var: np.ndarray, m: HeadingFusion) -> np.ndarray:
-    """Cov(d) of the model ``d_k = c_k + w_k + v_k`` built by brute force: every state's covariance with every
-    later one through the products of the transitions (the reference for the filter's evidence)."""
+def test_a_jump_spread_over_a_turn_stays_the_filters_not_the_odometrys() -> None:
+    """The classroom's failure (stop 50): the filter's heading goes 20 deg off within 15 s at two thirds of the run
+    and stays there; the odometry is right. No single scan passes the one-scan gate, so with the window gate off
+    the mean-reverting filter error hands the offset back to the odometry as a bias ramp (the correction reaches
+    several degrees before the jump); summed over 10 s it is found, the step state takes it, and the correction
+    stays small everywhere."""
+    rng = np.random.default_rng(5)
+    t = np.arange(N) * DT
+    odo = _odometry(rng)
+    yaw_filter = odo[:, 2] + _ou(rng, np.deg2rad(0.5), 30.0)
+    ramp = np.clip((t - 200.0) / 15.0, 0.0, 1.0) * np.deg2rad(20.0)
+    var = np.full(N, 1e-7)
+    window = fuse_heading(t, odo[:, 2], yaw_filter + ramp, var, HeadingFusion())
+    one_scan = fuse_heading(t, odo[:, 2], yaw_filter + ramp, var, HeadingFusion(jump_window=0.0))
+    assert one_scan.jumps == 0 and window.jumps >= 1
+    assert np.degrees(np.abs(window.correction)).max() < 2.0
+    assert np.degrees(np.abs(one_scan.correction)).max() > 3 * np.degrees(np.abs(window.correction)).max()
+    # a gyro drift (86 deg over the run, slow at every scale) is still the odometry's: followed, no jump
+    drift = 0.005 * t
+    follows = fuse_heading(t, odo[:, 2], yaw_filter + drift, var, HeadingFusion())
+    assert follows.jumps == 0
+    assert np.sqrt(np.mean((follows.correction - drift) ** 2)) < 0.1 * np.sqrt(np.mean(drift ** 2))
+
+
+def _joint_covariance(t: np.ndarray, var: np.ndarray, m: HeadingFusion,
+                      step_q: np.ndarray | None = None) -> np.ndarray:
+    """Cov(d) of the model ``d_k = c_k + w_k (+ s_k) + v_k`` built by brute force: every state's covariance with
+    every later one through the products of the transitions (the reference for the filter's evidence); ``step_q``:
+    the step state's process noise per scan (None: no step state)."""
     n = len(t)
+    dim = 3 if step_q is None else 4
     dts = np.r_[0.0, np.diff(t)]
-    trans = [np.eye(3)]
-    qs = [np.zeros((3, 3))]
+    trans = [np.eye(dim)]
+    qs = [np.zeros((dim, dim))]
     for k in range(1, n):
         dt = dts[k]
         phi = np.exp(-dt / m.filter_tau)
-        trans.append(np.array([[1.0, -dt, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, phi]]))
-        q = np.zeros((3, 3))
+        f = np.eye(dim)
+        f[0, 1], f[2, 2] = -dt, phi
+        trans.append(f)
+        q = np.zeros((dim, dim))
         q[0, 0] = m.bias_walk ** 2 * dt ** 3 / 3 + m.increment_scale * var[k]
         q[0, 1] = q[1, 0] = -m.bias_walk ** 2 * dt ** 2 / 2
         q[1, 1] = m.bias_walk ** 2 * dt
         q[2, 2] = m.filter_sigma ** 2 * (1 - phi * phi)
         qs.append(q)
-    ps = [np.diag([1e-12, m.bias_sigma0 ** 2 + 1e-18, 1e-12])]
+    ps = [np.diag([1e-12, m.bias_sigma0 ** 2 + 1e-18, 1e-12, 1e-12][:dim])]
+    if step_q is not None:
+        ps[0][3, 3] += step_q[0]
     for k in range(1, n):
         ps.append(trans[k] @ ps[-1] @ trans[k].T + qs[k])
-    h = np.array([1.0, 0.0, 1.0])
+        if step_q is not None:
+            ps[-1][3, 3] += step_q[k]
+    h = np.array([1.0, 0.0, 1.0, 1.0])[:dim]
     cov = np.empty((n, n))
     for j in range(n):
         cross = ps[j]
@@ -133,6 +166,25 @@ def test_the_evidence_is_the_models_gaussian_density_of_the_difference() -> None
         got = fuse_heading(t, yo, yf, var, m).log_evidence
         want = multivariate_normal(np.zeros(n), _joint_covariance(t, var, m)).logpdf(yf - yo)
         assert got == pytest.approx(want, rel=1e-6, abs=1e-6)
+    # with a step state over a segment (the pass that follows a found jump): the same check, 4 states
+    m = HeadingFusion()
+    q = step_noise(t, [(40, 25, 0.01)], m.jump_allowance)
+    d = np.unwrap(yf - yo)
+    got = _forward(t, d - d[0], var, m, q).log_evidence
+    want = multivariate_normal(np.zeros(n), _joint_covariance(t, var, m, q)).logpdf(yf - yo)
+    assert got == pytest.approx(want, rel=1e-6, abs=1e-6)
+
+
+def test_a_found_jump_opens_a_segment_of_the_step_state() -> None:
+    """step_noise: a jump found at scan 40 that began at 25 lets s move over scans 26..55 with total variance
+    allowance^2 u2, spread by the scans' intervals; a one-scan jump puts it all at its scan."""
+    t = np.cumsum(np.r_[0.0, np.full(99, 0.1)])
+    t[60:] += 0.5  # an uneven interval inside no segment changes nothing
+    q = step_noise(t, [(40, 25, 0.01), (80, 80, 0.04)], 2.0)
+    assert q.sum() == pytest.approx(4 * 0.01 + 4 * 0.04)
+    assert np.flatnonzero(q[:70]).tolist() == list(range(26, 56))
+    np.testing.assert_allclose(q[26:56], 4 * 0.01 / 30)
+    assert q[80] == pytest.approx(4 * 0.04) and np.count_nonzero(q[70:]) == 1
 
 
 def test_the_stage_passes_the_increment_scale_to_the_fusion() -> None:

@@ -219,7 +219,11 @@ class SlamParams(StageParams):
                                           "the fusion keeps more of the odometry's heading where the weight holds "
                                           "little (stages/slam/README.md, stop 47; 0: off)")
     fusion_jump_gate: float = Field(5.0, ge=0, description="estimate = fused: a heading step of the filter past "
-                                    "this many predicted sigmas is its own error's jump (0: off)")
+                                    "this many predicted sigmas, within one scan or summed over "
+                                    "fusion_jump_window, is a jump of its own error, which stays (0: off)")
+    fusion_jump_window: float = Field(10.0, ge=0, description="estimate = fused: seconds over which a jump of the "
+                                      "filter's heading spread over a turn is summed (stop 50; 0: one-scan gate "
+                                      "only)")
     # -- FastSLAM grid baseline
     grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
     grid_l_occ: float = Field(0.85, gt=0, description="fastslam_grid log-odds added at an endpoint cell")
@@ -322,6 +326,7 @@ class SlamParams(StageParams):
             fusion=HeadingFusion(bias_sigma0=self.fusion_bias_sigma0, bias_walk=self.fusion_bias_walk,
                                  filter_sigma=math.radians(self.fusion_filter_sigma),
                                  filter_tau=self.fusion_filter_tau, jump_gate=self.fusion_jump_gate,
+                                 jump_window=self.fusion_jump_window,
                                  increment_scale=self.fusion_increment_scale,
                                  information_ref=self.fusion_information_ref),
         )
@@ -394,9 +399,11 @@ class SlamStage(Stage):
                     dev = heading_deviation(odo, own, inc_cov)
                     ctx.stats["methods"][m]["heading_deviation_sigmas"] = round(dev.sigmas, 2)
                     if p.estimate == "fused" and res.fusion_jumps:
-                        ctx.warn(f"{m}'s heading jumped at {res.fusion_jumps} scan(s) (past slam.fusion_jump_gate "
-                                 f"= {p.fusion_jump_gate} sigma): the fused estimate kept the odometry's heading "
-                                 f"there; compare trajectory_{m}.parquet with trajectory_odometry.parquet")
+                        ctx.warn(f"{m}'s heading jumped {res.fusion_jumps} time(s) (past slam.fusion_jump_gate = "
+                                 f"{p.fusion_jump_gate} sigma, within a scan or over slam.fusion_jump_window = "
+                                 f"{p.fusion_jump_window} s): the fused estimate gave each jump to the filter's own "
+                                 f"error and kept the odometry's heading there; compare trajectory_{m}.parquet with "
+                                 "trajectory_odometry.parquet")
                     if dev.sigmas > p.deviation_warn_sigmas:
                         ctx.warn(f"{m}'s heading left the odometry's by {dev.degrees:.1f} deg at scan "
                                  f"{int(scans[dev.index])}, {dev.sigmas:.1f} sigma of the odometry's own accumulated "
