@@ -103,6 +103,8 @@ def test_a_jump_spread_over_a_turn_stays_the_filters_not_the_odometrys() -> None
     one_scan = fuse_heading(t, odo[:, 2], yaw_filter + ramp, var, HeadingFusion(jump_window=0.0))
     assert one_scan.jumps == 0 and window.jumps >= 1
     assert np.degrees(np.abs(window.correction)).max() < 2.0
+    assert window.step is not None and abs(np.degrees(window.step[-1]) - 20.0) < 2.0  # the step holds the jump
+    assert one_scan.step is not None and not np.any(one_scan.step)  # no jump found: no step state
     assert np.degrees(np.abs(one_scan.correction)).max() > 3 * np.degrees(np.abs(window.correction)).max()
     # a gyro drift (86 deg over the run, slow at every scale) is still the odometry's: followed, no jump
     drift = 0.005 * t

@@ -262,6 +262,16 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest
         1.5 * max(1.0, (400.0 / from_kept["heading_information"]) ** 0.5), rel=1e-9)
     for k in ("heading_information", "fusion_filter_sigma_deg"):  # the filter run's row says the same
         assert in_run[k] == pytest.approx(from_kept[k], rel=1e-9)
+    # the fusion figure of a kept trajectory takes its row's model (configuration and information-scaled std)
+    from stages.slam import fusion_figure
+
+    fig = tmp_path / "fusion.png"
+    assert fusion_figure.main([str(tmp_path / "seq_a"), str(kept[0]), "--rows", str(out5), "--out", str(fig)]) == 0
+    assert fig.stat().st_size > 0 and not list(tmp_path.glob("*.tmp.png"))
+    model = fusion_figure.panel_model(from_kept, {})
+    assert model.increment_scale == 0.5
+    assert np.degrees(model.filter_sigma) == pytest.approx(from_kept["fusion_filter_sigma_deg"], rel=1e-12)
+    assert fusion_figure.main([str(tmp_path / "seq_a"), "--out", str(fig)]) == 2  # not a pair
     # fusion_information_ref = 0: the configured model itself, no information computed nor recorded, both ways
     out7, out8 = tmp_path / "t3_kept_ref0.jsonl", tmp_path / "t3_fused_ref0.jsonl"
     ref0 = [*base5, "--set", "fusion_information_ref=0"]

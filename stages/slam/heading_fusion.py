@@ -90,6 +90,7 @@ class FusedHeading(NamedTuple):
     std: F64  # (n,) its standard deviation (rad)
     jumps: int  # jumps of the filter's heading found by either gate (each one a segment of the step state s)
     log_evidence: float = 0.0  # log p(d | model): the sum of the final forward pass's innovation log densities
+    step: F64 | None = None  # (n,) smoothed s, the filter's persistent step (rad; zeros where no jump was found)
 
 
 class _Pass(NamedTuple):
@@ -222,7 +223,8 @@ def fuse_heading(t_s: npt.ArrayLike, yaw_odometry: npt.ArrayLike, yaw_filter: np
     found = _forward(t, d, var, model, None, detect=True).jumps if model.jump_gate > 0 else []
     fw = _forward(t, d, var, model, step_noise(t, found, model.jump_allowance) if found else None)
     xs, ps = _smooth(fw)
-    return FusedHeading(xs[:, 0], np.sqrt(np.maximum(ps[:, 0, 0], 0.0)), len(found), fw.log_evidence)
+    step = xs[:, 3] if xs.shape[1] == 4 else np.zeros(n)
+    return FusedHeading(xs[:, 0], np.sqrt(np.maximum(ps[:, 0, 0], 0.0)), len(found), fw.log_evidence, step)
 
 
 def recompose(odometry: npt.ArrayLike, correction: npt.ArrayLike) -> F64:

@@ -1,0 +1,142 @@
+"""Figure: where the fused estimate takes its heading from (stages/slam/heading_fusion.py), against the truth.
+
+One panel per kept filter trajectory (``table3 --keep``): the heading errors of the odometry, of the filter's
+smoothed trajectory and of the fused estimate, each relative to its first scan, the filter's persistent step
+``s`` found by the fusion's jump gates, and where its segments begin. Usage::
+
+    python -m stages.slam.fusion_figure RUN KEPT.npz [RUN KEPT.npz ...] --rows ROWS.jsonl --out F.png
+
+``--rows``: a Table III results file with the fused rows of these trajectories; each panel's fusion model takes
+the filter-error std its row records (``fusion_filter_sigma_deg``, the information-scaled one) and the row's
+configuration; without a row, the configured defaults (``--set``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from stages.slam.heading_fusion import FusedHeading, HeadingFusion, fuse_heading
+from stages.slam.stage import SlamParams
+from stages.slam.table3 import read_odometry_motion
+
+F64 = npt.NDArray[np.floating[Any]]
+
+
+def heading_errors(t_ns: npt.NDArray[np.int64], yaw: F64, truth_t_ns: npt.NDArray[np.int64], truth_yaw: F64) -> F64:
+    """Unwrapped heading error at the scan stamps (truth interpolated), relative to the first scan (rad)."""
+    truth = np.interp(t_ns.astype(np.float64), truth_t_ns.astype(np.float64), np.unwrap(truth_yaw))
+    err = np.unwrap(yaw) - truth
+    return err - err[0]
+
+
+def panel_model(row: dict[str, Any] | None, overrides: dict[str, Any]) -> HeadingFusion:
+    """The fusion model of a fused row (its configuration and its information-scaled filter-error std)."""
+    config = {k: v for k, v in json.loads(row["config"]).items() if k != "estimate"} if row else {}
+    model = SlamParams(**{**config, **overrides}).config().fusion
+    if row and row.get("fusion_filter_sigma_deg") is not None:
+        model = model.model_copy(update={"filter_sigma": math.radians(row["fusion_filter_sigma_deg"])})
+    return model
+
+
+def draw(out: Path, panels: list[dict[str, Any]]) -> None:
+    """Draw the panels (``title``, ``t`` s, errors deg ``odometry``/``filter``/``fused``, ``step`` deg,
+    ``jumps``: the scans where a step segment begins) one above the other into a PNG (written to a temporary
+    name, then renamed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(panels), 1, figsize=(9.0, 3.1 * len(panels)), squeeze=False)
+    for ax, p in zip(axes[:, 0], panels, strict=True):
+        ax.axhline(0.0, color="0.75", lw=0.8)
+        ax.plot(p["t"], p["odometry"], color="tab:gray", lw=1.2, label="odometry")
+        ax.plot(p["t"], p["filter"], color="tab:orange", lw=1.0, label="filter (smoothed)")
+        ax.plot(p["t"], p["fused"], color="tab:blue", lw=1.6, label="fused")
+        if np.any(p["step"] != 0):
+            ax.plot(p["t"], p["step"], color="tab:red", lw=1.0, ls="--", label="the filter's step s (the fusion's)")
+        for k in p["jumps"]:
+            ax.axvline(p["t"][k], color="tab:red", lw=0.6, alpha=0.5)
+        ax.set_title(p["title"], fontsize=9)
+        ax.set_ylabel("heading error (deg)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="best")
+    axes[-1, 0].set_xlabel("time (s)")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(out)
+
+
+def build_panel(run_dir: Path, kept_path: Path, rows: dict[tuple[str, str, int], dict[str, Any]],
+                overrides: dict[str, Any]) -> dict[str, Any]:
+    """One panel's curves: the kept smoothed trajectory fused again with its row's model."""
+    kept = np.load(kept_path)
+    label, seed = str(kept["label"]).split(",")[0], int(kept["seed"])
+    _, t_ns, odo, motion = read_odometry_motion(run_dir)
+    if not np.array_equal(t_ns, kept["t_ns"]):
+        raise ValueError(f"{kept_path}: its scan stamps are not those of {run_dir}/odometry")
+    row = rows.get((run_dir.name, f"{label}, fused", seed))
+    model = panel_model(row, overrides)
+    t = np.cumsum(motion.dt)
+    fused: FusedHeading = fuse_heading(t, odo[:, 2], kept["pose"][:, 2], motion.cov[:, 2, 2], model)
+    truth = (kept["truth_t_ns"], kept["truth_yaw"])
+    yaw_fused = odo[:, 2] + fused.correction
+    rmse = {k: float(np.degrees(np.sqrt(np.mean(v ** 2)))) for k, v in (
+        ("odometry", heading_errors(t_ns, odo[:, 2], *truth)), ("fused", heading_errors(t_ns, yaw_fused, *truth)))}
+    step = np.zeros(len(t)) if fused.step is None else fused.step
+    moving = np.r_[False, np.abs(np.diff(step)) > 1e-6]  # where s moves: the found jumps' segments
+    starts = np.flatnonzero(moving & ~np.r_[False, moving[:-1]])
+    return {
+        "title": f"{run_dir.name}: {label} seed {seed}, filter-error std {math.degrees(model.filter_sigma):.1f} deg, "
+                 f"{fused.jumps} jump(s) found\nheading error RMS from the first scan (no alignment): odometry "
+                 f"{rmse['odometry']:.2f} deg, fused {rmse['fused']:.2f} deg",
+        "t": t,
+        "odometry": np.degrees(heading_errors(t_ns, odo[:, 2], *truth)),
+        "filter": np.degrees(heading_errors(t_ns, kept["pose"][:, 2], *truth)),
+        "fused": np.degrees(heading_errors(t_ns, yaw_fused, *truth)),
+        "step": np.degrees(step),
+        "jumps": [int(k) for k in starts],
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("pairs", nargs="+", help="RUN KEPT.npz pairs: a run folder and a kept smoothed trajectory")
+    ap.add_argument("--rows", type=Path, nargs="*", default=[], help="Table III results files with their fused rows")
+    ap.add_argument("--set", action="append", default=[], metavar="PARAM=JSON", help="a slam fusion_* parameter")
+    ap.add_argument("--out", type=Path, required=True)
+    a = ap.parse_args(argv)
+    if len(a.pairs) % 2:
+        print("fusion_figure: give RUN KEPT.npz pairs (an odd number of paths was given)", file=sys.stderr)
+        return 2
+    overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in a.set)}
+    rows: dict[tuple[str, str, int], dict[str, Any]] = {}
+    for f in a.rows:
+        for line in f.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                rows[(r["seq"], r["method"], int(r["seed"]))] = r
+    try:
+        panels = [build_panel(Path(run), Path(kept), rows, overrides)
+                  for run, kept in zip(a.pairs[::2], a.pairs[1::2], strict=True)]
+    except (OSError, ValueError, KeyError) as e:
+        print(f"fusion_figure: {e}", file=sys.stderr)
+        return 2
+    draw(a.out, panels)
+    print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
