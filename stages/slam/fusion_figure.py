@@ -25,7 +25,7 @@ import numpy.typing as npt
 
 from stages.slam.heading_fusion import FusedHeading, HeadingFusion, fuse_heading
 from stages.slam.stage import SlamParams
-from stages.slam.table3 import read_odometry_motion
+from stages.slam.table3 import read_odometry_motion, slam_overrides
 
 F64 = npt.NDArray[np.floating[Any]]
 
@@ -91,9 +91,9 @@ def build_panel(run_dir: Path, kept_path: Path, rows: dict[tuple[str, str, int],
     t = np.cumsum(motion.dt)
     fused: FusedHeading = fuse_heading(t, odo[:, 2], kept["pose"][:, 2], motion.cov[:, 2, 2], model)
     truth = (kept["truth_t_ns"], kept["truth_yaw"])
-    yaw_fused = odo[:, 2] + fused.correction
-    rmse = {k: float(np.degrees(np.sqrt(np.mean(v ** 2)))) for k, v in (
-        ("odometry", heading_errors(t_ns, odo[:, 2], *truth)), ("fused", heading_errors(t_ns, yaw_fused, *truth)))}
+    errors = {k: np.degrees(heading_errors(t_ns, yaw, *truth)) for k, yaw in (
+        ("odometry", odo[:, 2]), ("filter", kept["pose"][:, 2]), ("fused", odo[:, 2] + fused.correction))}
+    rmse = {k: float(np.sqrt(np.mean(errors[k] ** 2))) for k in ("odometry", "fused")}
     step = np.zeros(len(t)) if fused.step is None else fused.step
     moving = np.r_[False, np.abs(np.diff(step)) > 1e-6]  # where s moves: the found jumps' segments
     starts = np.flatnonzero(moving & ~np.r_[False, moving[:-1]])
@@ -102,9 +102,7 @@ def build_panel(run_dir: Path, kept_path: Path, rows: dict[tuple[str, str, int],
                  f"{fused.jumps} jump(s) found\nheading error RMS from the first scan (no alignment): odometry "
                  f"{rmse['odometry']:.2f} deg, fused {rmse['fused']:.2f} deg",
         "t": t,
-        "odometry": np.degrees(heading_errors(t_ns, odo[:, 2], *truth)),
-        "filter": np.degrees(heading_errors(t_ns, kept["pose"][:, 2], *truth)),
-        "fused": np.degrees(heading_errors(t_ns, yaw_fused, *truth)),
+        **errors,
         "step": np.degrees(step),
         "jumps": [int(k) for k in starts],
     }
@@ -114,13 +112,18 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("pairs", nargs="+", help="RUN KEPT.npz pairs: a run folder and a kept smoothed trajectory")
     ap.add_argument("--rows", type=Path, nargs="*", default=[], help="Table III results files with their fused rows")
-    ap.add_argument("--set", action="append", default=[], metavar="PARAM=JSON", help="a slam fusion_* parameter")
+    ap.add_argument("--set", action="append", default=[], metavar="PARAM=JSON",
+                    help="a slam parameter (fusion_*), as table3 takes it")
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
     if len(a.pairs) % 2:
         print("fusion_figure: give RUN KEPT.npz pairs (an odd number of paths was given)", file=sys.stderr)
         return 2
-    overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in a.set)}
+    try:
+        overrides = slam_overrides(a.set)
+    except ValueError as e:
+        print(f"fusion_figure: {e}", file=sys.stderr)
+        return 2
     rows: dict[tuple[str, str, int], dict[str, Any]] = {}
     for f in a.rows:
         for line in f.read_text().splitlines():
