@@ -283,6 +283,17 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest
     assert "heading_information" not in kept0 and "heading_information" not in run0
     for k in ("yaw_rmse_whole_deg", "pos_rmse_whole_m"):
         assert kept0[k] == pytest.approx(run0[k], rel=1e-9, abs=1e-12)
+    # the correction's scale chosen by the scans' consistency (fusion_alpha_max): the same both ways, recorded
+    out11, out12 = tmp_path / "t3_kept_alpha.jsonl", tmp_path / "t3_fused_alpha.jsonl"
+    alpha = [*base5, "--set", "fusion_alpha_max=1.5"]
+    assert table3.main([*alpha, "--out", str(out11), "--from-kept", str(keep)]) == 0
+    assert table3.main([*alpha, "--out", str(out12), "--estimates", "fused"]) == 0
+    kept_a = next(r for r in map(json.loads, out11.read_text().splitlines()) if r["method"] == "fastslam_grid, fused")
+    run_a = next(r for r in map(json.loads, out12.read_text().splitlines()) if r["method"] == "fastslam_grid, fused")
+    assert kept_a["fusion_alpha"] == run_a["fusion_alpha"] and 0 <= kept_a["fusion_alpha"] <= 1.5
+    assert kept_a["fusion_alpha"] % 0.125 == 0 and "fusion_alpha" not in from_kept
+    for k in ("yaw_rmse_whole_deg", "pos_rmse_whole_m"):
+        assert kept_a[k] == pytest.approx(run_a[k], rel=1e-9, abs=1e-12)
     # a Hilbert filter under the informed exponent: --from-kept takes the exponent the filter ran with
     keep9, out9, out10 = tmp_path / "kept9", tmp_path / "t3_kept9.jsonl", tmp_path / "t3_fused9.jsonl"
     base9 = [str(tmp_path / "seq_a"), "--methods", "rich_slam", "--seeds", "0", "--set", "n_particles=4", "--set",

@@ -22,6 +22,7 @@ from stages.slam.delayed_maps import DelayedMaps
 from stages.slam.grid_map import GridModel, GridParticleMaps, make_grid_spec
 from stages.slam.heading_fusion import HeadingFusion, fuse_heading, informed, recompose
 from stages.slam.heading_information import yaw_information
+from stages.slam.map_consistency import MapConsistency, consistent_scale
 from stages.slam.parallel import ParallelHilbertMaps, submap_factory
 from stages.slam.pose_refinement import PoseRefinement
 from stages.slam.rbpf import (
@@ -128,6 +129,8 @@ class SlamConfig:
     map_delay: int = 0
     #: the error models of the ``fused`` estimate (:mod:`heading_fusion`)
     fusion: HeadingFusion = field(default_factory=HeadingFusion)
+    #: the scale of the fused correction chosen by the radar map's self-consistency (:mod:`map_consistency`)
+    consistency: MapConsistency = field(default_factory=MapConsistency)
     #: the informed exponent (:func:`informed_exponent`): a Hilbert filter whose weight's median yaw information
     #: along the odometry is at least this (rad^-2, at ``likelihood_exponent``) runs with
     #: ``informed_likelihood_exponent`` instead (None: off; never ``rich_slam_paper`` nor ``rich_slam_refined``)
@@ -219,6 +222,8 @@ class MethodResult:
     heading_information: float | None = None
     #: the exponent on the scan likelihood the filter ran with (Hilbert methods; :func:`informed_exponent`)
     likelihood_exponent: float | None = None
+    #: the scale of the fusion's heading correction that the fused estimate applies (:func:`fused_estimate`)
+    fusion_alpha: float | None = None
 
 
 def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]:
@@ -362,11 +367,12 @@ def run_method(
                 close()
     estimates = {"best_per_scan": h.best_trajectory(), "final_best_history": h.final_best_history(),
                  "weighted_mean": h.mean_trajectory(), "smoothed": h.smoothed_trajectory()}
-    fusion_jumps = 0
+    fusion_jumps, alpha = 0, None
     fusion, information = cfg.fusion, None
     if motion is not None:
         fusion, information = informed_fusion(method, cfg, basis, odometry, scans)
-        estimates["fused"], fusion_jumps = fused_estimate(odometry, estimates["smoothed"], motion, fusion)
+        estimates["fused"], fusion_jumps, alpha = fused_estimate(odometry, estimates["smoothed"], motion, fusion,
+                                                                 scans, cfg.consistency)
     poses = estimates[cfg.estimate]
     sigma_deg, median_information = fusion_record(fusion, information) if motion is not None else (None, None)
     return MethodResult(
@@ -375,7 +381,7 @@ def run_method(
         form if method in HILBERT_METHODS else "", device,
         np.asarray(h.yaw_bias) if proposal.bias is not None else None, estimates,
         *_submap_counts(maps), fusion_jumps, sigma_deg, median_information,
-        likelihood_exponent=cfg.likelihood_exponent if method in HILBERT_METHODS else None,
+        likelihood_exponent=cfg.likelihood_exponent if method in HILBERT_METHODS else None, fusion_alpha=alpha,
     )
 
 
@@ -432,13 +438,24 @@ def informed_fusion(method: str, cfg: SlamConfig, basis: hm.HilbertBasis, odomet
     return informed(cfg.fusion, information), information
 
 
-def fused_estimate(odometry: F64, smoothed: F64, motion: OdometryMotion, model: HeadingFusion
-                   ) -> tuple[F64, int]:
+def fused_estimate(odometry: F64, smoothed: F64, motion: OdometryMotion, model: HeadingFusion,
+                   scans: Sequence[BeamSamples] = (), consistency: MapConsistency | None = None
+                   ) -> tuple[F64, int, float]:
     """The ``fused`` estimate: the smoother's heading fused with the odometry's (:func:`heading_fusion.fuse_heading`,
-    with the odometry's per-scan increment yaw variances), the odometry's increments composed along it; and the
-    number of scans where the filter's heading jumped (``HeadingFusion.jump_gate``)."""
-    fused = fuse_heading(np.cumsum(motion.dt), odometry[:, 2], smoothed[:, 2], motion.cov[:, 2, 2], model)
-    return recompose(odometry, fused.correction), fused.jumps
+    with the odometry's per-scan increment yaw variances), its correction of the odometry's heading scaled by the
+    ``alpha`` that makes the scans' endpoints most consistent (:func:`map_consistency.consistent_scale`; 1 where
+    ``consistency.alpha_max`` is 0 or no scans are given), the odometry's increments composed along it; the
+    number of scans where the filter's heading jumped (``HeadingFusion.jump_gate``); and ``alpha``."""
+    t_s = np.cumsum(motion.dt)
+    fused = fuse_heading(t_s, odometry[:, 2], smoothed[:, 2], motion.cov[:, 2, 2], model)
+    alpha = 1.0
+    if consistency is not None and consistency.alpha_max > 0 and len(scans):
+        if len(scans) != len(odometry):
+            raise ValueError(f"fused_estimate: {len(scans)} scans for {len(odometry)} odometry poses")
+        points = np.concatenate([np.asarray(s.endpoints, np.float64).reshape(-1, 2) for s in scans])
+        scan = np.repeat(np.arange(len(scans)), [len(s.endpoints) for s in scans])
+        alpha = consistent_scale(odometry, fused.correction, points, scan, t_s, consistency).alpha
+    return recompose(odometry, alpha * fused.correction), fused.jumps, alpha
 
 
 def _submap_counts(maps: Any) -> tuple[int, int]:

@@ -32,6 +32,7 @@ from stages.slam.beam_sampling import BeamSamples, radar_to_body_2d, sample_beam
 from stages.slam.divergence import heading_deviation
 from stages.slam.grid_map import GridModel
 from stages.slam.heading_fusion import HeadingFusion
+from stages.slam.map_consistency import MapConsistency
 from stages.slam.methods import (
     HILBERT_METHODS,
     METHODS,
@@ -224,6 +225,10 @@ class SlamParams(StageParams):
     fusion_jump_window: float = Field(10.0, ge=0, description="estimate = fused: seconds over which a jump of the "
                                       "filter's heading spread over a turn is summed (stop 50; 0: one-scan gate "
                                       "only)")
+    fusion_alpha_max: float = Field(0.0, ge=0, description="estimate = fused: the fusion's heading correction is "
+                                    "applied scaled by the alpha in 0, 0.125, ..., this that makes the radar "
+                                    "scans' endpoints most consistent with each other along the trajectory "
+                                    "(stages/slam/map_consistency.py, stop 51; 0: off, the correction as fused)")
     # -- FastSLAM grid baseline
     grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
     grid_l_occ: float = Field(0.85, gt=0, description="fastslam_grid log-odds added at an endpoint cell")
@@ -329,6 +334,7 @@ class SlamParams(StageParams):
                                  jump_window=self.fusion_jump_window,
                                  increment_scale=self.fusion_increment_scale,
                                  information_ref=self.fusion_information_ref),
+            consistency=MapConsistency(alpha_max=self.fusion_alpha_max),
         )
 
 
@@ -384,6 +390,8 @@ class SlamStage(Stage):
                     **({"submaps_opened": res.submaps_opened} if res.submaps_opened else {}),
                     **({"submap_revisits": res.submap_revisits} if res.submap_revisits else {}),
                     **({"fusion_jumps": res.fusion_jumps} if p.estimate == "fused" and m != "odometry" else {}),
+                    **({"fusion_alpha": res.fusion_alpha} if p.estimate == "fused" and p.fusion_alpha_max > 0
+                       and res.fusion_alpha is not None and m != "odometry" else {}),
                     **({"fusion_filter_sigma_deg": round(res.fusion_filter_sigma_deg, 3)}
                        if p.estimate == "fused" and res.fusion_filter_sigma_deg is not None and m != "odometry"
                        else {}),

@@ -288,6 +288,8 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                 row = {"seq": run_dir.name, "method": label, "seed": s, "config": row_config,
                        **error_fields(t_ns, est, truth), "s_per_scan": seconds / len(odo),
                        "resamplings": res.resampled, "scans": len(odo)}
+                if est_name == "fused" and res.fusion_alpha is not None and cfg.consistency.alpha_max > 0:
+                    row["fusion_alpha"] = res.fusion_alpha
                 if est_name == "fused" and res.heading_information is not None:  # as the --from-kept rows give them
                     row["heading_information"] = res.heading_information
                     if res.fusion_filter_sigma_deg is not None:
@@ -379,7 +381,12 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
                 sigma_deg, median_information = fusion_record(model, information)
                 extra = {} if median_information is None else {
                     "heading_information": median_information, "fusion_filter_sigma_deg": sigma_deg}
-                fused, jumps = fused_estimate(odo, kept["pose"], motion, model)
+                consistency = SlamParams(**{**base, **fusion_keys}).config().consistency
+                if consistency.alpha_max > 0 and scans is None:
+                    scans = load_inputs(run_dir, p)[2]
+                fused, jumps, alpha = fused_estimate(odo, kept["pose"], motion, model, scans or (), consistency)
+                if consistency.alpha_max > 0:
+                    extra["fusion_alpha"] = alpha
                 truth: Truth = (kept["truth_t_ns"], kept["truth_xy"], kept["truth_yaw"])
                 row = {"seq": run_dir.name, "method": label, "seed": seed, "config": config,
                        **error_fields(t_ns, np.asarray(fused, np.float64), truth), "scans": len(odo),

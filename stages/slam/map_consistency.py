@@ -1,0 +1,112 @@
+"""How well a trajectory makes the radar's scans agree with each other, and the fused correction it prefers.
+
+A trajectory with the heading right puts a wall seen now where the same wall was seen a while ago; a heading
+error smears it. :func:`map_consistency` scores that without ground truth: every scan's endpoints are put in
+the world along the trajectory (one point per ``cell`` and ``block`` seconds), and each point's distance to the
+nearest point of a scan at least ``separation`` seconds away (the scans around it agree whatever the heading),
+truncated at ``truncation``, is squared and averaged: lower is more consistent. It is the likelihood field that
+fastslam_grid's weight uses (a distance to the nearest endpoint, capped), taken over the whole run at once
+instead of one scan against the map before it.
+
+:func:`consistent_scale` uses it on the fused estimate (stages/slam/README.md, stop 51): the fusion's heading
+correction ``c`` (:func:`heading_fusion.fuse_heading`) is applied scaled by the ``alpha`` in
+``{0, step, ..., alpha_max}`` whose trajectory (:func:`heading_fusion.recompose`) scores lowest. ``alpha = 0``
+is the odometry and ``alpha = 1`` the fused estimate, so the scan's own geometry decides how much of the
+filter's heading the result keeps.
+
+Pure numpy/scipy on arrays.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import cKDTree
+
+from stages.slam.heading_fusion import recompose
+
+F64 = npt.NDArray[np.floating[Any]]
+I64 = npt.NDArray[np.int64]
+
+
+class MapConsistency(BaseModel):
+    """The score of :func:`map_consistency` and the search of :func:`consistent_scale` (SI units). Set once
+    before any calibration run was scored (stages/slam/README.md, stop 51); not tuned."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    cell: float = Field(0.15, ge=0, description="one point per cell of this size (m) and time block (0: every "
+                        "endpoint)")
+    block: float = Field(1.0, gt=0, description="time block of the thinning, s")
+    separation: float = Field(5.0, gt=0, description="a point is compared with scans at least this far in time, s")
+    neighbours: int = Field(64, ge=1, description="nearest points searched for one that far in time")
+    truncation: float = Field(0.5, gt=0, description="distances are capped here (m): a point with no counterpart "
+                              "(clutter, a wall seen once) scores the cap whatever the trajectory")
+    alpha_max: float = Field(0.0, ge=0, description="largest scale of the fused correction searched (0: off, the "
+                             "fused estimate as the fusion gives it)")
+    alpha_step: float = Field(0.125, gt=0, description="step of the scale's grid")
+
+
+class ScaleChoice(NamedTuple):
+    """:func:`consistent_scale`'s result."""
+
+    alpha: float  # the chosen scale of the correction
+    alphas: F64  # the grid searched
+    scores: F64  # map_consistency at each
+
+
+def world_points(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.ArrayLike) -> F64:
+    """Body-frame points ``(N, 2)`` of scans ``scan (N,)`` put in the world along ``poses (T, 3)``."""
+    p = np.asarray(poses, np.float64)[np.asarray(scan, np.int64)]
+    b = np.asarray(points, np.float64).reshape(-1, 2)
+    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+    return np.c_[c * b[:, 0] - s * b[:, 1] + p[:, 0], s * b[:, 0] + c * b[:, 1] + p[:, 1]]
+
+
+def map_consistency(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.ArrayLike, t_s: npt.ArrayLike,
+                    params: MapConsistency | None = None) -> float:
+    """Mean squared truncated distance from each (thinned) endpoint to the nearest endpoint of a scan at least
+    ``params.separation`` s away (module docstring); ``params.truncation ** 2`` where no point is that close. Lower
+    is more consistent. ``points (N, 2)`` body frame, ``scan (N,)`` their scan index into ``poses (T, 3)`` and
+    ``t_s (T,)``. A run without points scores 0."""
+    p = params or MapConsistency()
+    t = np.asarray(t_s, np.float64)
+    scan = np.asarray(scan, np.int64)
+    if len(t) != len(np.asarray(poses).reshape(-1, 3)):
+        raise ValueError(f"map_consistency: {len(np.asarray(poses).reshape(-1, 3))} poses for {len(t)} stamps")
+    w = world_points(poses, points, scan)
+    tp = t[scan]
+    keep = np.all(np.isfinite(w), axis=1)
+    w, tp = w[keep], tp[keep]
+    if len(w) == 0:
+        return 0.0
+    if p.cell > 0:  # one point per cell and time block: a wall seen by many scans in a row counts once a block
+        key = np.c_[np.floor(w / p.cell).astype(np.int64), np.floor(tp / p.block).astype(np.int64)]
+        _, first = np.unique(key, axis=0, return_index=True)
+        first.sort()
+        w, tp = w[first], tp[first]
+    k = min(p.neighbours, len(w))
+    d, j = cKDTree(w).query(w, k=k, distance_upper_bound=p.truncation)
+    d, j = d.reshape(len(w), k), j.reshape(len(w), k)
+    found = np.isfinite(d)
+    far = found & (np.abs(tp[np.where(found, j, 0)] - tp[:, None]) >= p.separation)
+    nearest = np.where(far, d, p.truncation).min(axis=1)
+    return float(np.mean(np.minimum(nearest, p.truncation) ** 2))
+
+
+def consistent_scale(odometry: npt.ArrayLike, correction: npt.ArrayLike, points: npt.ArrayLike,
+                     scan: npt.ArrayLike, t_s: npt.ArrayLike, params: MapConsistency | None = None) -> ScaleChoice:
+    """The scale ``alpha`` of the heading ``correction (T,)`` on ``odometry (T, 3)`` whose recomposed trajectory is
+    the most consistent (:func:`map_consistency`) over ``{0, alpha_step, ..., alpha_max}``; ties go to the larger
+    scale (the fused estimate). ``alpha_max = 0``: 1 (the correction as given), nothing scored."""
+    p = params or MapConsistency(alpha_max=1.0)
+    if p.alpha_max <= 0:
+        return ScaleChoice(1.0, np.ones(1), np.zeros(1))
+    alphas = np.arange(int(np.floor(p.alpha_max / p.alpha_step + 1e-9)) + 1) * p.alpha_step
+    c = np.asarray(correction, np.float64)
+    scores = np.array([map_consistency(recompose(odometry, a * c), points, scan, t_s, p) for a in alphas])
+    best = int(len(scores) - 1 - np.argmin(scores[::-1]))  # the largest of equal minima
+    return ScaleChoice(float(alphas[best]), alphas, scores)

@@ -1,0 +1,110 @@
+"""The radar map's self-consistency along a trajectory (stages/slam/map_consistency.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.slam.heading_fusion import recompose
+from stages.slam.map_consistency import MapConsistency, consistent_scale, map_consistency, world_points
+
+
+def _room_run(seed: int = 0, n: int = 400, dt: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A 12 x 9 m room with two pillars, a path looping twice around it, and each scan's endpoints (body
+    frame) of the walls within 6 m and +-60 deg, with 3 cm noise and 10 % clutter."""
+    rng = np.random.default_rng(seed)
+    s = np.arange(0.0, 1.0, 0.004)
+    walls = np.concatenate([np.c_[12 * s, 0 * s], np.c_[12 * s, 0 * s + 9], np.c_[0 * s, 9 * s],
+                            np.c_[0 * s + 12, 9 * s], np.c_[4 + s, 3 + 0 * s], np.c_[8 + 0 * s, 5 + s]])
+    t = np.arange(n) * dt
+    ang = 2 * np.pi * 2 * t / t[-1]
+    truth = np.c_[6 + 3.5 * np.cos(ang), 4.5 + 2.5 * np.sin(ang), ang + np.pi / 2]
+    pts, scan = [], []
+    for k, (x, y, yaw) in enumerate(truth):
+        rel = walls - [x, y]
+        c, sn = np.cos(yaw), np.sin(yaw)
+        body = np.c_[c * rel[:, 0] + sn * rel[:, 1], -sn * rel[:, 0] + c * rel[:, 1]]
+        r, bearing = np.hypot(*body.T), np.arctan2(body[:, 1], body[:, 0])
+        seen = body[(r < 6) & (np.abs(bearing) < np.radians(60))]
+        seen = seen[rng.random(len(seen)) < 0.3]
+        seen = seen + rng.normal(0, 0.03, seen.shape)
+        clutter = rng.uniform([-1, -4], [6, 4], (max(1, len(seen) // 10), 2))
+        both = np.concatenate([seen, clutter])
+        pts.append(both)
+        scan.append(np.full(len(both), k))
+    return t, truth, np.concatenate(pts), np.concatenate(scan)
+
+
+def _drifted(truth: np.ndarray, t: np.ndarray, rate: float) -> np.ndarray:
+    """The truth's body-frame increments composed along a heading that drifts by ``rate`` rad/s."""
+    return recompose(truth, rate * t)
+
+
+def test_world_points_puts_body_points_along_the_poses() -> None:
+    poses = np.array([[1.0, 2.0, np.pi / 2], [0.0, 0.0, 0.0]])
+    w = world_points(poses, [[1.0, 0.0], [1.0, 0.0]], [0, 1])
+    np.testing.assert_allclose(w, [[1.0, 3.0], [1.0, 0.0]], atol=1e-12)
+
+
+def test_score_equals_a_brute_force_pairwise_search() -> None:
+    rng = np.random.default_rng(3)
+    t = np.arange(60) * 0.5
+    poses = np.c_[rng.normal(0, 0.3, (60, 2)), rng.normal(0, 0.05, 60)]
+    scan = np.repeat(np.arange(60), 5)
+    pts = rng.uniform(-2, 2, (300, 2))
+    p = MapConsistency(cell=0, neighbours=300, separation=5.0, truncation=0.4)
+    w = world_points(poses, pts, scan)
+    d = np.hypot(*(w[:, None] - w[None]).transpose(2, 0, 1))
+    far = np.abs(t[scan][:, None] - t[scan][None]) >= 5.0
+    nearest = np.minimum(np.where(far, d, np.inf).min(axis=1), 0.4)
+    assert map_consistency(poses, pts, scan, t, p) == pytest.approx(float(np.mean(nearest ** 2)), rel=1e-12)
+
+
+def test_a_drifting_heading_scores_worse_than_the_truth_and_worse_the_more_it_drifts() -> None:
+    t, truth, pts, scan = _room_run()
+    scores = [map_consistency(_drifted(truth, t, rate), pts, scan, t) for rate in (0.0, 1e-3, 3e-3, 1e-2)]
+    assert scores == sorted(scores) and scores[0] < 0.8 * scores[-1]
+
+
+def test_the_scale_that_undoes_a_drift_is_chosen() -> None:
+    t, truth, pts, scan = _room_run(1)
+    odometry = _drifted(truth, t, 4e-3)  # 9 deg off at the end
+    exact = -4e-3 * t  # the correction that undoes it
+    assert consistent_scale(odometry, exact, pts, scan, t).alpha == 1.0
+    choice = consistent_scale(odometry, 2 * exact, pts, scan, t, MapConsistency(alpha_max=1.5))
+    assert choice.alpha == 0.5 and choice.scores.argmin() == 4
+    # a correction that makes it worse is dropped: the odometry stays
+    assert consistent_scale(odometry, -exact, pts, scan, t).alpha == 0.0
+
+
+def test_off_and_empty() -> None:
+    t, truth, pts, scan = _room_run(2, n=50)
+    off = consistent_scale(truth, np.ones(len(t)), pts, scan, t, MapConsistency(alpha_max=0))
+    assert off.alpha == 1.0 and off.scores.size == 1
+    assert map_consistency(truth, np.zeros((0, 2)), np.zeros(0, np.int64), t) == 0.0
+    with pytest.raises(ValueError, match="poses for"):
+        map_consistency(truth[:-1], pts, scan, t)
+
+
+def test_the_fused_estimate_keeps_the_odometry_where_the_filter_smears_the_map() -> None:
+    """fused_estimate with the consistency search: a filter heading that wanders away from a right odometry is
+    dropped (alpha 0: the odometry itself); one that undoes the odometry's drift is kept (alpha 1)."""
+    from stages.slam.beam_sampling import BeamSamples
+    from stages.slam.heading_fusion import HeadingFusion
+    from stages.slam.methods import OdometryMotion, fused_estimate
+
+    t, truth, pts, scan = _room_run(4)
+    scans = [BeamSamples(pts[scan == k], np.ones(int(np.sum(scan == k))), np.arange(int(np.sum(scan == k))),
+                         pts[scan == k], np.zeros(2)) for k in range(len(t))]
+    motion = OdometryMotion(np.tile(np.diag([1e-4, 1e-4, 1e-6]), (len(t), 1, 1)), np.r_[0.0, np.diff(t)])
+    model = HeadingFusion(bias_sigma0=0.01, information_ref=0)
+    on = MapConsistency(alpha_max=1.0)
+    wander = recompose(truth, np.radians(6) * np.sin(2 * np.pi * t / t[-1]))  # the filter, off by up to 6 deg
+    fused, _, alpha = fused_estimate(truth, wander, motion, model, scans, on)
+    assert alpha == 0.0
+    np.testing.assert_allclose(fused, recompose(truth, np.zeros(len(t))), atol=1e-12)
+    odometry = _drifted(truth, t, 4e-3)
+    fused, _, alpha = fused_estimate(odometry, truth, motion, model, scans, on)
+    assert alpha == 1.0
+    plain, _, one = fused_estimate(odometry, truth, motion, model)
+    assert one == 1.0 and np.array_equal(fused, plain)
