@@ -281,17 +281,21 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest
     run0 = next(r for r in map(json.loads, out8.read_text().splitlines()) if r["method"] == "fastslam_grid, fused")
     assert json.loads(kept0["config"])["fusion_information_ref"] == 0
     assert "heading_information" not in kept0 and "heading_information" not in run0
+    off = [*base5, "--set", "fusion_alpha_max=0", "--out"]  # off: the fusion's correction as it is, no scale recorded
+    assert table3.main([*off, str(tmp_path / "t3_off.jsonl"), "--from-kept", str(keep)]) == 0
+    assert "fusion_alpha" not in json.loads((tmp_path / "t3_off.jsonl").read_text().splitlines()[0])
     for k in ("yaw_rmse_whole_deg", "pos_rmse_whole_m"):
         assert kept0[k] == pytest.approx(run0[k], rel=1e-9, abs=1e-12)
     # the correction's scale chosen by the scans' consistency (fusion_alpha_max): the same both ways, recorded
     out11, out12 = tmp_path / "t3_kept_alpha.jsonl", tmp_path / "t3_fused_alpha.jsonl"
-    alpha = [*base5, "--set", "fusion_alpha_max=1.5"]
+    alpha = [*base5, "--set", "fusion_alpha_max=1.0"]
     assert table3.main([*alpha, "--out", str(out11), "--from-kept", str(keep)]) == 0
     assert table3.main([*alpha, "--out", str(out12), "--estimates", "fused"]) == 0
     kept_a = next(r for r in map(json.loads, out11.read_text().splitlines()) if r["method"] == "fastslam_grid, fused")
     run_a = next(r for r in map(json.loads, out12.read_text().splitlines()) if r["method"] == "fastslam_grid, fused")
-    assert kept_a["fusion_alpha"] == run_a["fusion_alpha"] and 0 <= kept_a["fusion_alpha"] <= 1.5
-    assert kept_a["fusion_alpha"] % 0.125 == 0 and "fusion_alpha" not in from_kept
+    assert kept_a["fusion_alpha"] == run_a["fusion_alpha"] and 0 <= kept_a["fusion_alpha"] <= 1.0
+    assert kept_a["fusion_alpha"] % 0.125 == 0 and from_kept["fusion_alpha"] == in_run["fusion_alpha"]
+    assert 0 <= from_kept["fusion_alpha"] <= 1.5  # the default searches up to 1.5
     for k in ("yaw_rmse_whole_deg", "pos_rmse_whole_m"):
         assert kept_a[k] == pytest.approx(run_a[k], rel=1e-9, abs=1e-12)
     # a Hilbert filter under the informed exponent: --from-kept takes the exponent the filter ran with

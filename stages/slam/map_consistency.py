@@ -33,8 +33,9 @@ I64 = npt.NDArray[np.int64]
 
 
 class MapConsistency(BaseModel):
-    """The score of :func:`map_consistency` and the search of :func:`consistent_scale` (SI units). Set once
-    before any calibration run was scored (stages/slam/README.md, stop 51); not tuned."""
+    """The score of :func:`map_consistency` and the search of :func:`consistent_scale` (SI units). The score's
+    settings were set once before any calibration run was scored and not tuned; ``alpha_max`` was chosen between
+    1 and 1.5 on the twelve calibration runs by a rule written first (stages/slam/README.md, stop 51)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -45,8 +46,8 @@ class MapConsistency(BaseModel):
     neighbours: int = Field(64, ge=1, description="nearest points searched for one that far in time")
     truncation: float = Field(0.5, gt=0, description="distances are capped here (m): a point with no counterpart "
                               "(clutter, a wall seen once) scores the cap whatever the trajectory")
-    alpha_max: float = Field(0.0, ge=0, description="largest scale of the fused correction searched (0: off, the "
-                             "fused estimate as the fusion gives it)")
+    alpha_max: float = Field(1.5, ge=0, description="largest scale of the fused correction searched (0: off, the "
+                             "fused estimate as the fusion gives it; 1.5 chosen on the calibration runs, stop 51)")
     alpha_step: float = Field(0.125, gt=0, description="step of the scale's grid")
 
 
@@ -102,7 +103,7 @@ def consistent_scale(odometry: npt.ArrayLike, correction: npt.ArrayLike, points:
     """The scale ``alpha`` of the heading ``correction (T,)`` on ``odometry (T, 3)`` whose recomposed trajectory is
     the most consistent (:func:`map_consistency`) over ``{0, alpha_step, ..., alpha_max}``; ties go to the larger
     scale (the fused estimate). ``alpha_max = 0``: 1 (the correction as given), nothing scored."""
-    p = params or MapConsistency(alpha_max=1.0)
+    p = params or MapConsistency()
     if p.alpha_max <= 0:
         return ScaleChoice(1.0, np.ones(1), np.zeros(1))
     alphas = np.arange(int(np.floor(p.alpha_max / p.alpha_step + 1e-9)) + 1) * p.alpha_step

@@ -225,10 +225,11 @@ class SlamParams(StageParams):
     fusion_jump_window: float = Field(10.0, ge=0, description="estimate = fused: seconds over which a jump of the "
                                       "filter's heading spread over a turn is summed (stop 50; 0: one-scan gate "
                                       "only)")
-    fusion_alpha_max: float = Field(0.0, ge=0, description="estimate = fused: the fusion's heading correction is "
+    fusion_alpha_max: float = Field(1.5, ge=0, description="estimate = fused: the fusion's heading correction is "
                                     "applied scaled by the alpha in 0, 0.125, ..., this that makes the radar "
-                                    "scans' endpoints most consistent with each other along the trajectory "
-                                    "(stages/slam/map_consistency.py, stop 51; 0: off, the correction as fused)")
+                                    "scans' endpoints most consistent with each other along the trajectory (0: "
+                                    "the odometry; stages/slam/map_consistency.py, chosen on the calibration runs "
+                                    "at stop 51; 0 here: off, the correction as fused)")
     # -- FastSLAM grid baseline
     grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
     grid_l_occ: float = Field(0.85, gt=0, description="fastslam_grid log-odds added at an endpoint cell")
