@@ -272,6 +272,19 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest
     assert model.increment_scale == 0.5
     assert np.degrees(model.filter_sigma) == pytest.approx(from_kept["fusion_filter_sigma_deg"], rel=1e-12)
     assert fusion_figure.main([str(tmp_path / "seq_a"), "--out", str(fig)]) == 2  # not a pair
+    # the consistency figure: the score and the yaw error over the searched scales, the chosen one marked
+    from stages.slam import consistency_figure
+
+    fig2 = tmp_path / "consistency.png"
+    panel = consistency_figure.build_panel(tmp_path / "seq_a", kept[0], {}, {})
+    assert panel["scores"][0] == 1.0 and len(panel["alphas"]) == len(panel["yaw"]) == 13
+    assert panel["alpha"] in panel["alphas"] and panel["scores"][list(panel["alphas"]).index(panel["alpha"])] == \
+        panel["scores"].min()
+    assert consistency_figure.main([str(tmp_path / "seq_a"), str(kept[0]), "--rows", str(out5), "--out",
+                                    str(fig2)]) == 0
+    assert fig2.stat().st_size > 0 and not list(tmp_path.glob("*.tmp.png"))
+    assert consistency_figure.main([str(tmp_path / "seq_a"), str(kept[0]), "--set", "fusion_alpha_max=0",
+                                    "--out", str(fig2)]) == 2  # nothing searched: a one-line error
     # fusion_information_ref = 0: the configured model itself, no information computed nor recorded, both ways
     out7, out8 = tmp_path / "t3_kept_ref0.jsonl", tmp_path / "t3_fused_ref0.jsonl"
     ref0 = [*base5, "--set", "fusion_information_ref=0"]

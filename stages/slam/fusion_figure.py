@@ -46,6 +46,17 @@ def panel_model(row: dict[str, Any] | None, overrides: dict[str, Any]) -> Headin
     return model
 
 
+def read_rows_file(paths: list[Path]) -> dict[tuple[str, str, int], dict[str, Any]]:
+    """The rows of Table III results files by (sequence, method, seed); a later row replaces an earlier one."""
+    rows: dict[tuple[str, str, int], dict[str, Any]] = {}
+    for f in paths:
+        for line in f.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                rows[(r["seq"], r["method"], int(r["seed"]))] = r
+    return rows
+
+
 def draw(out: Path, panels: list[dict[str, Any]]) -> None:
     """Draw the panels (``title``, ``t`` s, errors deg ``odometry``/``filter``/``fused``, ``step`` deg,
     ``jumps``: the scans where a step segment begins) one above the other into a PNG (written to a temporary
@@ -124,13 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         print(f"fusion_figure: {e}", file=sys.stderr)
         return 2
-    rows: dict[tuple[str, str, int], dict[str, Any]] = {}
-    for f in a.rows:
-        for line in f.read_text().splitlines():
-            if line.strip():
-                r = json.loads(line)
-                rows[(r["seq"], r["method"], int(r["seed"]))] = r
     try:
+        rows = read_rows_file(a.rows)
         panels = [build_panel(Path(run), Path(kept), rows, overrides)
                   for run, kept in zip(a.pairs[::2], a.pairs[1::2], strict=True)]
     except (OSError, ValueError, KeyError) as e:
