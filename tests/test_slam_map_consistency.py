@@ -82,6 +82,9 @@ def test_off_and_empty() -> None:
     off = consistent_scale(truth, np.ones(len(t)), pts, scan, t, MapConsistency(alpha_max=0))
     assert off.alpha == 1.0 and off.scores.size == 1
     assert map_consistency(truth, np.zeros((0, 2)), np.zeros(0, np.int64), t) == 0.0
+    # no endpoints: every scale scores the same, and the correction stays as the fusion gives it
+    blind = consistent_scale(truth, np.ones(len(t)), np.zeros((0, 2)), np.zeros(0, np.int64), t)
+    assert blind.alpha == 1.0 and np.all(blind.scores == 0)
     with pytest.raises(ValueError, match="poses for"):
         map_consistency(truth[:-1], pts, scan, t)
 

@@ -101,13 +101,14 @@ def map_consistency(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.Array
 def consistent_scale(odometry: npt.ArrayLike, correction: npt.ArrayLike, points: npt.ArrayLike,
                      scan: npt.ArrayLike, t_s: npt.ArrayLike, params: MapConsistency | None = None) -> ScaleChoice:
     """The scale ``alpha`` of the heading ``correction (T,)`` on ``odometry (T, 3)`` whose recomposed trajectory is
-    the most consistent (:func:`map_consistency`) over ``{0, alpha_step, ..., alpha_max}``; ties go to the larger
-    scale (the fused estimate). ``alpha_max = 0``: 1 (the correction as given), nothing scored."""
+    the most consistent (:func:`map_consistency`) over ``{0, alpha_step, ..., alpha_max}``; of equal scores the one
+    nearest 1 (the correction as the fusion gives it: scans without endpoints say nothing). ``alpha_max = 0``: 1,
+    nothing scored."""
     p = params or MapConsistency()
     if p.alpha_max <= 0:
         return ScaleChoice(1.0, np.ones(1), np.zeros(1))
     alphas = np.arange(int(np.floor(p.alpha_max / p.alpha_step + 1e-9)) + 1) * p.alpha_step
     c = np.asarray(correction, np.float64)
     scores = np.array([map_consistency(recompose(odometry, a * c), points, scan, t_s, p) for a in alphas])
-    best = int(len(scores) - 1 - np.argmin(scores[::-1]))  # the largest of equal minima
+    best = int(np.lexsort((np.abs(alphas - 1.0), scores))[0])  # the lowest score; of equal ones, nearest 1
     return ScaleChoice(float(alphas[best]), alphas, scores)
