@@ -12,18 +12,16 @@ the ground truth (what it should have chosen); the chosen scale and the error's 
 
 from __future__ import annotations
 
-import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from stages.slam.fusion_figure import panel_model, read_rows_file
+from stages.slam.fusion_figure import figure_main, panel_model, save_png
 from stages.slam.heading_fusion import fuse_heading, recompose
 from stages.slam.map_consistency import consistent_scale
 from stages.slam.stage import SlamParams
-from stages.slam.table3 import error_fields, load_inputs, slam_overrides
+from stages.slam.table3 import error_fields, load_inputs
 
 
 def build_panel(run_dir: Path, kept_path: Path, rows: dict[tuple[str, str, int], dict[str, Any]],
@@ -78,36 +76,11 @@ def draw(out: Path, panels: list[dict[str, Any]], columns: int = 3) -> None:
         ax.set_title(f"{p['title']}\nchosen alpha {p['alpha']:.3g}: {p['yaw'][chosen]:.2f} deg (odometry "
                      f"{p['yaw'][0]:.2f}, best {p['yaw'][best]:.2f})", fontsize=8)
         ax.grid(alpha=0.3)
-    fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(out)
+    save_png(fig, out, 100)
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("pairs", nargs="+", help="RUN KEPT.npz pairs: a run folder and a kept smoothed trajectory")
-    ap.add_argument("--rows", type=Path, nargs="*", default=[], help="Table III results files with their fused rows")
-    ap.add_argument("--set", action="append", default=[], metavar="PARAM=JSON",
-                    help="a slam parameter (fusion_*), as table3 takes it")
-    ap.add_argument("--out", type=Path, required=True)
-    a = ap.parse_args(argv)
-    if len(a.pairs) % 2:
-        print("consistency_figure: give RUN KEPT.npz pairs (an odd number of paths was given)", file=sys.stderr)
-        return 2
-    try:
-        overrides = slam_overrides(a.set)
-        rows = read_rows_file(a.rows)
-        panels = [build_panel(Path(run), Path(kept), rows, overrides)
-                  for run, kept in zip(a.pairs[::2], a.pairs[1::2], strict=True)]
-    except (OSError, ValueError, KeyError) as e:
-        print(f"consistency_figure: {e}", file=sys.stderr)
-        return 2
-    draw(a.out, panels)
-    print(f"wrote {a.out}")
-    return 0
+    return figure_main("consistency_figure", __doc__ or "", build_panel, draw, argv)
 
 
 if __name__ == "__main__":

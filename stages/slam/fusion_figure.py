@@ -17,6 +17,7 @@ import argparse
 import json
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -81,10 +82,18 @@ def draw(out: Path, panels: list[dict[str, Any]]) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="best")
     axes[-1, 0].set_xlabel("time (s)")
+    save_png(fig, out, 110)
+
+
+def save_png(fig: Any, out: Path, dpi: int) -> None:
+    """Lay out and write a matplotlib figure to ``out`` through a temporary name (nothing half-written), then
+    close it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    fig.savefig(tmp, dpi=dpi)
     plt.close(fig)
     tmp.replace(out)
 
@@ -119,8 +128,11 @@ def build_panel(run_dir: Path, kept_path: Path, rows: dict[tuple[str, str, int],
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def figure_main(name: str, doc: str, build: Callable[..., dict[str, Any]],
+                draw_panels: Callable[[Path, list[dict[str, Any]]], None], argv: list[str] | None) -> int:
+    """The command line of a figure over kept trajectories (this module's and :mod:`consistency_figure`'s):
+    ``RUN KEPT.npz`` pairs, ``--rows``, ``--set``, ``--out``; a bad input is a one-line error (exit 2)."""
+    ap = argparse.ArgumentParser(prog=f"python -m stages.slam.{name}", description=doc.splitlines()[0])
     ap.add_argument("pairs", nargs="+", help="RUN KEPT.npz pairs: a run folder and a kept smoothed trajectory")
     ap.add_argument("--rows", type=Path, nargs="*", default=[], help="Table III results files with their fused rows")
     ap.add_argument("--set", action="append", default=[], metavar="PARAM=JSON",
@@ -128,23 +140,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
     if len(a.pairs) % 2:
-        print("fusion_figure: give RUN KEPT.npz pairs (an odd number of paths was given)", file=sys.stderr)
+        print(f"{name}: give RUN KEPT.npz pairs (an odd number of paths was given)", file=sys.stderr)
         return 2
     try:
         overrides = slam_overrides(a.set)
-    except ValueError as e:
-        print(f"fusion_figure: {e}", file=sys.stderr)
-        return 2
-    try:
         rows = read_rows_file(a.rows)
-        panels = [build_panel(Path(run), Path(kept), rows, overrides)
+        panels = [build(Path(run), Path(kept), rows, overrides)
                   for run, kept in zip(a.pairs[::2], a.pairs[1::2], strict=True)]
     except (OSError, ValueError, KeyError) as e:
-        print(f"fusion_figure: {e}", file=sys.stderr)
+        print(f"{name}: {e}", file=sys.stderr)
         return 2
-    draw(a.out, panels)
+    draw_panels(a.out, panels)
     print(f"wrote {a.out}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return figure_main("fusion_figure", __doc__ or "", build_panel, draw, argv)
 
 
 if __name__ == "__main__":
