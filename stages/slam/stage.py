@@ -226,10 +226,10 @@ class SlamParams(StageParams):
                                       "filter's heading spread over a turn is summed (stop 50; 0: one-scan gate "
                                       "only)")
     fusion_alpha_max: float = Field(1.5, ge=0, description="estimate = fused: the fusion's heading correction is "
-                                    "applied scaled by the alpha in 0, 0.125, ..., this that makes the radar "
-                                    "scans' endpoints most consistent with each other along the trajectory (0: "
-                                    "the odometry; stages/slam/map_consistency.py, chosen on the calibration runs "
-                                    "at stop 51; 0 here: off, the correction as fused)")
+                                    "applied times the scale in 0 (the odometry), 0.125, ..., this that makes the "
+                                    "radar scans' endpoints most consistent with each other along the trajectory "
+                                    "(stages/slam/map_consistency.py; chosen on the calibration runs at stop 51; "
+                                    "0: off, the correction as the fusion gives it)")
     # -- FastSLAM grid baseline
     grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
     grid_l_occ: float = Field(0.85, gt=0, description="fastslam_grid log-odds added at an endpoint cell")
@@ -402,6 +402,11 @@ class SlamStage(Stage):
                 }
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
                                   f"s/scan), {res.resampled} resamplings[/]")
+                scaled = p.estimate == "fused" and p.fusion_alpha_max > 0 and m != "odometry"
+                if scaled and res.fusion_alpha is not None:
+                    ctx.console.print(f"slam: {m}: the fused estimate applies {res.fusion_alpha:g} x the fusion's "
+                                      "heading correction (the scale that makes the scans most consistent; 0: the "
+                                      "odometry itself, the filter's heading made them less consistent)")
                 if m != "odometry":
                     # the filter's own heading: the fused estimate leans on the odometry and would hide a divergence
                     own = res.estimates.get("smoothed", res.poses) if p.estimate == "fused" else res.poses
