@@ -19,7 +19,7 @@ import numpy as np
 
 from stages.slam.fusion_figure import figure_main, panel_model, save_png
 from stages.slam.heading_fusion import fuse_heading, recompose
-from stages.slam.map_consistency import consistent_scale
+from stages.slam.map_consistency import consistent_scale, stacked_endpoints
 from stages.slam.stage import SlamParams
 from stages.slam.table3 import error_fields, load_inputs
 
@@ -40,8 +40,7 @@ def build_panel(run_dir: Path, kept_path: Path, rows: dict[tuple[str, str, int],
         raise ValueError("slam.fusion_alpha_max is 0: no scale is searched; set it above 0")
     t = np.cumsum(motion.dt)
     correction = fuse_heading(t, odo[:, 2], kept["pose"][:, 2], motion.cov[:, 2, 2], model).correction
-    points = np.concatenate([np.asarray(s.endpoints, np.float64).reshape(-1, 2) for s in scans])
-    scan = np.repeat(np.arange(len(scans)), [len(s.endpoints) for s in scans])
+    points, scan = stacked_endpoints(scans)
     choice = consistent_scale(odo, correction, points, scan, t, consistency)
     yaw = np.array([error_fields(t_ns, np.asarray(recompose(odo, a * correction), np.float64),
                                  truth)["yaw_rmse_whole_deg"] for a in choice.alphas])

@@ -19,6 +19,7 @@ Pure numpy/scipy on arrays.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -59,6 +60,13 @@ class ScaleChoice(NamedTuple):
     scores: F64  # map_consistency at each
 
 
+def stacked_endpoints(scans: Sequence[Any]) -> tuple[F64, I64]:
+    """Every scan's kept endpoints (body frame, ``BeamSamples.endpoints``) stacked ``(N, 2)``, and their scan
+    index ``(N,)``: the inputs of :func:`map_consistency`."""
+    points = np.concatenate([np.zeros((0, 2)), *(np.asarray(s.endpoints, np.float64).reshape(-1, 2) for s in scans)])
+    return points, np.repeat(np.arange(len(scans)), [len(s.endpoints) for s in scans]).astype(np.int64)
+
+
 def world_points(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.ArrayLike) -> F64:
     """Body-frame points ``(N, 2)`` of scans ``scan (N,)`` put in the world along ``poses (T, 3)``."""
     p = np.asarray(poses, np.float64)[np.asarray(scan, np.int64)]
@@ -76,8 +84,9 @@ def map_consistency(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.Array
     p = params or MapConsistency()
     t = np.asarray(t_s, np.float64)
     scan = np.asarray(scan, np.int64)
-    if len(t) != len(np.asarray(poses).reshape(-1, 3)):
-        raise ValueError(f"map_consistency: {len(np.asarray(poses).reshape(-1, 3))} poses for {len(t)} stamps")
+    n_poses = len(np.asarray(poses).reshape(-1, 3))
+    if len(t) != n_poses:
+        raise ValueError(f"map_consistency: {n_poses} poses for {len(t)} stamps")
     w = world_points(poses, points, scan)
     tp = t[scan]
     keep = np.all(np.isfinite(w), axis=1)

@@ -22,7 +22,7 @@ from stages.slam.delayed_maps import DelayedMaps
 from stages.slam.grid_map import GridModel, GridParticleMaps, make_grid_spec
 from stages.slam.heading_fusion import HeadingFusion, fuse_heading, informed, recompose
 from stages.slam.heading_information import yaw_information
-from stages.slam.map_consistency import MapConsistency, consistent_scale
+from stages.slam.map_consistency import MapConsistency, consistent_scale, stacked_endpoints
 from stages.slam.parallel import ParallelHilbertMaps, submap_factory
 from stages.slam.pose_refinement import PoseRefinement
 from stages.slam.rbpf import (
@@ -452,8 +452,7 @@ def fused_estimate(odometry: F64, smoothed: F64, motion: OdometryMotion, model: 
     if consistency is not None and consistency.alpha_max > 0 and len(scans):
         if len(scans) != len(odometry):
             raise ValueError(f"fused_estimate: {len(scans)} scans for {len(odometry)} odometry poses")
-        points = np.concatenate([np.asarray(s.endpoints, np.float64).reshape(-1, 2) for s in scans])
-        scan = np.repeat(np.arange(len(scans)), [len(s.endpoints) for s in scans])
+        points, scan = stacked_endpoints(scans)
         alpha = consistent_scale(odometry, fused.correction, points, scan, t_s, consistency).alpha
     return recompose(odometry, alpha * fused.correction), fused.jumps, alpha
 

@@ -379,6 +379,9 @@ class SlamStage(Stage):
                 res = run_method(m, odo, samples, basis, cfg, p.seed, observer=obs, on_step=advance, motion=motion)
                 results[m] = res
                 write_trajectory(ctx.output(f"trajectory_{m}.parquet"), scans, t_ns, res)
+                # the fused estimate's scale of the fusion's correction (map_consistency): recorded and said
+                scaled = (p.estimate == "fused" and p.fusion_alpha_max > 0 and m != "odometry"
+                          and res.fusion_alpha is not None)
                 ctx.stats.setdefault("methods", {})[m] = {
                     "seconds": round(res.seconds, 3),
                     "seconds_per_scan": round(res.seconds / max(len(scans), 1), 5),
@@ -391,8 +394,7 @@ class SlamStage(Stage):
                     **({"submaps_opened": res.submaps_opened} if res.submaps_opened else {}),
                     **({"submap_revisits": res.submap_revisits} if res.submap_revisits else {}),
                     **({"fusion_jumps": res.fusion_jumps} if p.estimate == "fused" and m != "odometry" else {}),
-                    **({"fusion_alpha": res.fusion_alpha} if p.estimate == "fused" and p.fusion_alpha_max > 0
-                       and res.fusion_alpha is not None and m != "odometry" else {}),
+                    **({"fusion_alpha": res.fusion_alpha} if scaled else {}),
                     **({"fusion_filter_sigma_deg": round(res.fusion_filter_sigma_deg, 3)}
                        if p.estimate == "fused" and res.fusion_filter_sigma_deg is not None and m != "odometry"
                        else {}),
@@ -402,8 +404,7 @@ class SlamStage(Stage):
                 }
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
                                   f"s/scan), {res.resampled} resamplings[/]")
-                scaled = p.estimate == "fused" and p.fusion_alpha_max > 0 and m != "odometry"
-                if scaled and res.fusion_alpha is not None:
+                if scaled:
                     ctx.console.print(f"slam: {m}: the fused estimate applies {res.fusion_alpha:g} x the fusion's "
                                       "heading correction (the scale that makes the scans most consistent; 0: the "
                                       "odometry itself, the filter's heading made them less consistent)")

@@ -46,6 +46,7 @@ from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, eva
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
 from stages.slam.heading_fusion import HeadingFusion
+from stages.slam.map_consistency import MapConsistency
 from stages.slam.methods import (
     ESTIMATES,
     METHODS,
@@ -339,8 +340,8 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
     for run_dir in runs:
         odometry: tuple[npt.NDArray[np.int64], F64, OdometryMotion] | None = None  # read once per run folder
         scans: list[BeamSamples] | None = None
-        # the fusion model and the weight's information, per (method, the kept run's configuration)
-        fusions: dict[tuple[str, str], tuple[HeadingFusion, F64 | None]] = {}
+        # the fusion model, the weight's information and the scale's search, per (method, the kept run's config)
+        fusions: dict[tuple[str, str], tuple[HeadingFusion, F64 | None, MapConsistency]] = {}
         for m in methods:
             for path in sorted((keep / run_dir.name).glob(f"{m}*_seed*.npz")):
                 kept = np.load(path)
@@ -374,14 +375,13 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
                                               params.n_basis, params.basis_kind)
                         # the exponent the filter ran with (informed_exponent_information), then its information
                         cfg = informed_exponent(m, cfg, basis, odo, scans)
-                        fusions[key] = informed_fusion(m, cfg, basis, odo, scans)
+                        fusions[key] = (*informed_fusion(m, cfg, basis, odo, scans), cfg.consistency)
                     else:
-                        fusions[key] = (cfg.fusion, None)
-                model, information = fusions[key]
+                        fusions[key] = (cfg.fusion, None, cfg.consistency)
+                model, information, consistency = fusions[key]
                 sigma_deg, median_information = fusion_record(model, information)
                 extra = {} if median_information is None else {
                     "heading_information": median_information, "fusion_filter_sigma_deg": sigma_deg}
-                consistency = SlamParams(**{**base, **fusion_keys}).config().consistency
                 if consistency.alpha_max > 0 and scans is None:
                     scans = load_inputs(run_dir, p)[2]
                 fused, jumps, alpha = fused_estimate(odo, kept["pose"], motion, model, scans or (), consistency)
