@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from stages.slam.heading_fusion import recompose
-from stages.slam.map_consistency import MapConsistency, consistent_scale, map_consistency, world_points
+from stages.slam.map_consistency import (
+    MapConsistency,
+    consistency_parts,
+    consistent_scale,
+    heading_ramp,
+    map_consistency,
+    scaled_positions,
+    world_points,
+)
 
 
 def _room_run(seed: int = 0, n: int = 400, dt: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -60,6 +68,53 @@ def test_score_equals_a_brute_force_pairwise_search() -> None:
     assert map_consistency(poses, pts, scan, t, p) == pytest.approx(float(np.mean(nearest ** 2)), rel=1e-12)
 
 
+def test_the_parts_split_the_score_as_a_brute_force_search_does() -> None:
+    rng = np.random.default_rng(5)
+    t = np.arange(60) * 0.5
+    poses = np.c_[rng.normal(0, 0.3, (60, 2)), rng.normal(0, 0.05, 60)]
+    scan = np.repeat(np.arange(60), 5)
+    pts = rng.uniform(-2, 2, (300, 2))
+    p = MapConsistency(cell=0, neighbours=300, separation=5.0, truncation=0.1)
+    w = world_points(poses, pts, scan)
+    d = np.hypot(*(w[:, None] - w[None]).transpose(2, 0, 1))
+    far = np.abs(t[scan][:, None] - t[scan][None]) >= 5.0
+    nearest = np.where(far, d, np.inf).min(axis=1)
+    matched = nearest < 0.1
+    assert 0.1 < matched.mean() < 0.9  # both kinds of point are there
+    parts = consistency_parts(poses, pts, scan, t, p)
+    assert parts.matched == pytest.approx(float(matched.mean()), rel=1e-12)
+    assert parts.matched_ms == pytest.approx(float(np.mean(nearest[matched] ** 2)), rel=1e-12)
+    assert parts.score == pytest.approx(parts.matched * parts.matched_ms + (1 - parts.matched) * 0.01, rel=1e-12)
+    assert parts.score == map_consistency(poses, pts, scan, t, p)
+    none = consistency_parts(poses, pts, scan, t, MapConsistency(cell=0, separation=100.0))
+    assert none.matched == 0.0 and np.isnan(none.matched_ms) and none.score == pytest.approx(0.25)
+
+
+def test_the_perturbations_of_the_sweep() -> None:
+    t, truth, _, _ = _room_run(3, n=60)
+    np.testing.assert_allclose(scaled_positions(truth, 1.0), truth, rtol=0, atol=1e-12)
+    half = scaled_positions(truth, 0.5)
+    np.testing.assert_allclose(half[:, :2] - truth[0, :2], 0.5 * (truth[:, :2] - truth[0, :2]), atol=1e-12)
+    np.testing.assert_array_equal(half[:, 2], truth[:, 2])
+    np.testing.assert_allclose(heading_ramp(truth, t, 0.0), recompose(truth, np.zeros(len(t))), atol=1e-12)
+    ramp = heading_ramp(truth, t, 0.1)
+    d = np.angle(np.exp(1j * (ramp[:, 2] - truth[:, 2])))
+    np.testing.assert_allclose(d, 0.1 * t / t[-1], atol=1e-12)
+
+
+def test_the_criterion_chooses_by_the_matched_points_or_by_the_whole_score() -> None:
+    t, truth, pts, scan = _room_run(1)
+    odometry = _drifted(truth, t, 4e-3)
+    exact = -4e-3 * t
+    for criterion in ("matched", "capped"):
+        p = MapConsistency(alpha_max=1.5, criterion=criterion)
+        choice = consistent_scale(odometry, 2 * exact, pts, scan, t, p)
+        parts = [consistency_parts(recompose(odometry, a * 2 * exact), pts, scan, t, p) for a in choice.alphas]
+        want = [q.matched_ms if criterion == "matched" else q.score for q in parts]
+        np.testing.assert_allclose(choice.scores, want, rtol=1e-12)
+        assert choice.alpha == 0.5
+
+
 def test_a_drifting_heading_scores_worse_than_the_truth_and_worse_the_more_it_drifts() -> None:
     t, truth, pts, scan = _room_run()
     scores = [map_consistency(_drifted(truth, t, rate), pts, scan, t) for rate in (0.0, 1e-3, 3e-3, 1e-2)]
@@ -83,8 +138,11 @@ def test_off_and_empty() -> None:
     assert off.alpha == 1.0 and off.scores.size == 1
     assert map_consistency(truth, np.zeros((0, 2)), np.zeros(0, np.int64), t) == 0.0
     # no endpoints: every scale scores the same, and the correction stays as the fusion gives it
-    blind = consistent_scale(truth, np.ones(len(t)), np.zeros((0, 2)), np.zeros(0, np.int64), t)
-    assert blind.alpha == 1.0 and np.all(blind.scores == 0)
+    for criterion in ("matched", "capped"):
+        blind = consistent_scale(truth, np.ones(len(t)), np.zeros((0, 2)), np.zeros(0, np.int64), t,
+                                 MapConsistency(criterion=criterion))
+        assert blind.alpha == 1.0
+        assert np.all(np.isnan(blind.scores)) if criterion == "matched" else np.all(blind.scores == 0)
     with pytest.raises(ValueError, match="poses for"):
         map_consistency(truth[:-1], pts, scan, t)
 
@@ -111,3 +169,15 @@ def test_the_fused_estimate_keeps_the_odometry_where_the_filter_smears_the_map()
     assert alpha == 1.0
     plain, _, one = fused_estimate(odometry, truth, motion, model)
     assert one == 1.0 and np.array_equal(fused, plain)
+
+
+def test_the_slam_parameters_carry_the_criterion() -> None:
+    from pydantic import ValidationError
+
+    from stages.slam.stage import SlamParams
+
+    assert SlamParams().config().consistency.criterion == "capped"  # the default of stop 51 (README, stop 52)
+    matched = SlamParams(fusion_alpha_criterion="matched", fusion_alpha_max=1.0).config().consistency
+    assert matched.criterion == "matched" and matched.alpha_max == 1.0
+    with pytest.raises(ValidationError, match="fusion_alpha_criterion"):
+        SlamParams(fusion_alpha_criterion="kernel")

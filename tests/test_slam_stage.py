@@ -184,6 +184,45 @@ def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
         SlamParams(backend="torch", methods=["rich_slam"], endpoint_noise_variance=0.09)
 
 
+def test_consistency_sweep_perturbs_the_odometry_and_names_bad_input(tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m stages.slam.consistency_sweep``: the score, its parts and the errors per perturbation."""
+    from stages.slam import consistency_sweep
+
+    inp = _write_inputs(tmp_path / "seq_s", 60)
+    gt = inp["run"].groundtruth
+    t_ns = 1_000_000_000 + np.arange(60, dtype=np.int64) * 100_000_000
+    write_artifact({"t_ns": t_ns, "x": gt[:, 0], "y": gt[:, 1], "z": np.zeros(60), "qx": np.zeros(60),
+                    "qy": np.zeros(60), "qz": np.sin(gt[:, 2] / 2), "qw": np.cos(gt[:, 2] / 2)},
+                   inp["dirs"]["ingest"] / "groundtruth.parquet", "groundtruth")
+    out = tmp_path / "sweep.jsonl"
+    args = [str(tmp_path / "seq_s"), "--scales", "0.9,1,1.1", "--ramps=-0.1,0,0.1", "--set", "workers=0"]
+    assert consistency_sweep.main([*args, "--out", str(out)]) == 0
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [(r["kind"], r["value"]) for r in rows] == [("scale", 0.9), ("scale", 1.0), ("scale", 1.1),
+                                                        ("ramp", -0.1), ("ramp", 0.0), ("ramp", 0.1)]
+    one, zero = rows[1], rows[4]  # both the odometry itself
+    assert one["score_rel"] == 0.0 and zero["score_rel"] == pytest.approx(0.0, abs=1e-15)
+    assert one["yaw_rmse_whole_deg"] == pytest.approx(zero["yaw_rmse_whole_deg"], rel=1e-9)
+    for r in rows:  # the score is its two parts (0.5 m cap)
+        assert 0 < r["matched"] <= 1
+        assert r["score"] == pytest.approx(r["matched"] * r["matched_ms"] + (1 - r["matched"]) * 0.25, rel=1e-9)
+    assert rows[0]["yaw_rmse_whole_deg"] == pytest.approx(one["yaw_rmse_whole_deg"], rel=1e-9)  # a scale: no yaw
+    assert rows[3]["yaw_rmse_whole_deg"] != rows[5]["yaw_rmse_whole_deg"]
+    s = consistency_sweep.summary(rows)
+    assert set(s) == {f"{k}_by_{w}" for k in ("scale", "ramp") for w in ("score", "matched", "truth")}
+    assert s["ramp_by_score"] == min(rows[3:], key=lambda r: r["score"])["value"]
+    text = capsys.readouterr().out
+    assert "seq_s: scale by score" in text and "| ramp +0.1 |" in text and not list(tmp_path.glob("*.tmp"))
+    # bad input: one line naming it, exit 2, the earlier output left as it was
+    assert consistency_sweep.main([args[0], "--scales", "a,b", "--out", str(out)]) == 2
+    assert "--scales 'a,b'" in capsys.readouterr().err
+    assert consistency_sweep.main([str(tmp_path / "nothing"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("consistency_sweep:") and "\n" not in err
+    assert len(out.read_text().splitlines()) == 6
+
+
 def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``python -m stages.slam.table3``: one row per (sequence, method, seed), finished rows skipped."""
     from stages.slam import table3

@@ -1,7 +1,7 @@
 """Figure: how the fused estimate's scale is chosen (stages/slam/map_consistency.py), against the truth.
 
 One panel per kept filter trajectory (``table3 --keep``): over the scales ``alpha`` of the fusion's heading
-correction that the fused estimate searches, the scans' inconsistency along each recomposed trajectory (what
+correction that the fused estimate searches, the criterion of the scale along each recomposed trajectory (what
 chooses, relative to the odometry's, ``alpha = 0``) and the trajectory's whole-trajectory yaw RMSE against
 the ground truth (what it should have chosen); the chosen scale and the error's minimum marked. Usage::
 
@@ -64,7 +64,7 @@ def draw(out: Path, panels: list[dict[str, Any]], columns: int = 3) -> None:
     for ax, p in zip(axes.flat, panels, strict=False):
         ax.plot(p["alphas"], p["scores"], color="tab:blue", marker="o", ms=3, lw=1.2)
         ax.axvline(p["alpha"], color="tab:blue", lw=0.8, ls="--")
-        ax.set_ylabel("inconsistency / odometry's", color="tab:blue", fontsize=8)
+        ax.set_ylabel("criterion / odometry's (lower: more consistent)", color="tab:blue", fontsize=8)
         ax.set_xlabel("scale alpha of the fused correction (0: odometry, 1: fused)", fontsize=8)
         right = ax.twinx()
         right.plot(p["alphas"], p["yaw"], color="tab:red", marker="s", ms=3, lw=1.2)

@@ -1,0 +1,134 @@
+"""Can the scans' consistency score be trusted on a run? Its answer to perturbations the truth can judge.
+
+The fused estimate's scale is chosen by :func:`map_consistency.map_consistency` without ground truth. This tool
+perturbs a run's odometry two ways whose right answer the ground truth knows: its positions
+scaled about the start (:func:`map_consistency.scaled_positions`; the odometry's scale is nearly right on every
+simulated run, so an unbiased score is lowest near 1) and its heading given a linear ramp
+(:func:`map_consistency.heading_ramp`; the truth says which ramp undoes the odometry's drift). Per run and
+perturbation: the score relative to the odometry's, the share of points with a counterpart within the cap
+(:func:`map_consistency.consistency_parts`), and the whole-trajectory yaw and position RMSE against the ground
+truth. A score that keeps falling as the path contracts rewards overlap, not agreement
+(stages/slam/README.md, stop 52). Run folders need the odometry stage and a ground truth. Usage::
+
+    python -m stages.slam.consistency_sweep RUN [RUN ...] [--scales 0.94,1,1.06] [--ramps=-0.1,0,0.1] [--out F.jsonl]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stages.slam.map_consistency import (
+    MapConsistency,
+    consistency_parts,
+    heading_ramp,
+    scaled_positions,
+    stacked_endpoints,
+)
+from stages.slam.stage import SlamParams
+from stages.slam.table3 import error_fields, load_inputs, slam_overrides
+
+SCALES = (0.94, 0.97, 1.0, 1.03, 1.06)
+RAMPS = (-0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2)
+
+
+def sweep_run(run_dir: Path, params: SlamParams, scales: Sequence[float] = SCALES,
+              ramps: Sequence[float] = RAMPS) -> list[dict[str, Any]]:
+    """One row per perturbation of ``run_dir``'s odometry: ``kind`` (``scale`` or ``ramp``), ``value``, the score,
+    its parts and the whole-trajectory errors against the run's ground truth; ``score_rel`` is the score minus the
+    unperturbed odometry's."""
+    t_ns, odo, scans, truth, motion = load_inputs(run_dir, params)
+    t = np.cumsum(motion.dt)
+    points, scan = stacked_endpoints(scans)
+    if len(points) == 0:
+        raise ValueError(f"{run_dir}: no scan has endpoints; the score has nothing to compare")
+    consistency: MapConsistency = params.config().consistency
+    base = consistency_parts(odo, points, scan, t, consistency).score
+    rows = []
+    for kind, values in (("scale", scales), ("ramp", ramps)):
+        for v in values:
+            est = scaled_positions(odo, v) if kind == "scale" else heading_ramp(odo, t, v)
+            parts = consistency_parts(est, points, scan, t, consistency)
+            row: dict[str, Any] = {"seq": run_dir.name, "kind": kind, "value": float(v), "score": parts.score,
+                                   "score_rel": parts.score - base, "matched": parts.matched,
+                                   "matched_ms": parts.matched_ms}
+            e = error_fields(t_ns, np.asarray(est, np.float64), truth)
+            rows.append(row | {k: e[k] for k in ("yaw_rmse_whole_deg", "pos_rmse_whole_m")})
+    return rows
+
+
+def summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Per kind: the value the score picks (lowest), the one the matched points' mean square picks
+    (``slam.fusion_alpha_criterion = matched``) and the one the truth picks (lowest yaw RMSE for a ramp, lowest position
+    RMSE for a scale)."""
+    out: dict[str, Any] = {}
+    for kind, err in (("scale", "pos_rmse_whole_m"), ("ramp", "yaw_rmse_whole_deg")):
+        sel = [r for r in rows if r["kind"] == kind]
+        if not sel:
+            continue
+        out[f"{kind}_by_score"] = min(sel, key=lambda r: r["score"])["value"]
+        out[f"{kind}_by_matched"] = min(sel, key=lambda r: r["matched_ms"] if r["matched"] > 0 else np.inf)["value"]
+        out[f"{kind}_by_truth"] = min(sel, key=lambda r: r[err])["value"]
+    return out
+
+
+def table(rows: Sequence[dict[str, Any]]) -> str:
+    """A markdown table of one run's rows."""
+    lines = ["| perturbation | score - odometry's | matched share | matched mean square, m^2 | yaw RMSE, deg | "
+             "position RMSE, m |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['kind']} {r['value']:+g} | {r['score_rel']:+.4f} | {r['matched']:.3f} | "
+                     f"{r['matched_ms']:.4f} | {r['yaw_rmse_whole_deg']:.2f} | {r['pos_rmse_whole_m']:.2f} |")
+    return "\n".join(lines)
+
+
+def _floats(text: str, name: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ValueError(f"--{name} {text!r}: give comma-separated numbers, e.g. 0.94,1,1.06") from None
+    if not values:
+        raise ValueError(f"--{name} is empty: give comma-separated numbers")
+    return values
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m stages.slam.consistency_sweep",
+                                 description=(__doc__ or "").splitlines()[0])
+    ap.add_argument("runs", nargs="+", type=Path, help="run folders with an odometry (pipeline run odometry)")
+    ap.add_argument("--scales", default=",".join(map(str, SCALES)), help="position scales about the start")
+    ap.add_argument("--ramps", default=",".join(map(str, RAMPS)),
+                    help="heading ramps over the run, rad (write --ramps=-0.1,0,0.1: a leading minus needs the =)")
+    ap.add_argument("--set", action="append", default=[], metavar="PARAM=JSON",
+                    help="a slam parameter (the beam sampling's), as table3 takes it")
+    ap.add_argument("--out", type=Path, help="also write the rows here (JSON lines, replaced whole)")
+    a = ap.parse_args(argv)
+    try:
+        scales, ramps = _floats(a.scales, "scales"), _floats(a.ramps, "ramps")
+        params = SlamParams(**slam_overrides(a.set))
+        results = [(run, sweep_run(run, params, scales, ramps)) for run in a.runs]
+    except (OSError, ValueError, KeyError) as e:
+        print(f"consistency_sweep: {e}", file=sys.stderr)
+        return 2
+    every: list[dict[str, Any]] = []
+    for run, rows in results:
+        s = summary(rows)
+        picks = ", ".join(f"{k.replace('_', ' ')} {v:+g}" for k, v in s.items())
+        print(f"\n{run.name}: {picks}\n{table(rows)}")
+        every.extend(rows)
+    if a.out is not None:
+        tmp = a.out.with_name(a.out.name + ".tmp")
+        tmp.write_text("".join(json.dumps(r) + "\n" for r in every))
+        tmp.replace(a.out)
+        print(f"\nwrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
