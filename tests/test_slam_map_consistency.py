@@ -54,31 +54,30 @@ def test_world_points_puts_body_points_along_the_poses() -> None:
     np.testing.assert_allclose(w, [[1.0, 3.0], [1.0, 0.0]], atol=1e-12)
 
 
-def test_score_equals_a_brute_force_pairwise_search() -> None:
-    rng = np.random.default_rng(3)
+def _brute_force(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Random poses, 5 points per scan, and each point's distance to the nearest point of a scan 5 s away or more,
+    by a pairwise search over all points: ``t, poses, points, scan, nearest``."""
+    rng = np.random.default_rng(seed)
     t = np.arange(60) * 0.5
     poses = np.c_[rng.normal(0, 0.3, (60, 2)), rng.normal(0, 0.05, 60)]
     scan = np.repeat(np.arange(60), 5)
     pts = rng.uniform(-2, 2, (300, 2))
-    p = MapConsistency(cell=0, neighbours=300, separation=5.0, truncation=0.4)
     w = world_points(poses, pts, scan)
     d = np.hypot(*(w[:, None] - w[None]).transpose(2, 0, 1))
     far = np.abs(t[scan][:, None] - t[scan][None]) >= 5.0
-    nearest = np.minimum(np.where(far, d, np.inf).min(axis=1), 0.4)
-    assert map_consistency(poses, pts, scan, t, p) == pytest.approx(float(np.mean(nearest ** 2)), rel=1e-12)
+    return t, poses, pts, scan, np.where(far, d, np.inf).min(axis=1)
+
+
+def test_score_equals_a_brute_force_pairwise_search() -> None:
+    t, poses, pts, scan, nearest = _brute_force(3)
+    p = MapConsistency(cell=0, neighbours=300, separation=5.0, truncation=0.4)
+    want = float(np.mean(np.minimum(nearest, 0.4) ** 2))
+    assert map_consistency(poses, pts, scan, t, p) == pytest.approx(want, rel=1e-12)
 
 
 def test_the_parts_split_the_score_as_a_brute_force_search_does() -> None:
-    rng = np.random.default_rng(5)
-    t = np.arange(60) * 0.5
-    poses = np.c_[rng.normal(0, 0.3, (60, 2)), rng.normal(0, 0.05, 60)]
-    scan = np.repeat(np.arange(60), 5)
-    pts = rng.uniform(-2, 2, (300, 2))
+    t, poses, pts, scan, nearest = _brute_force(5)
     p = MapConsistency(cell=0, neighbours=300, separation=5.0, truncation=0.1)
-    w = world_points(poses, pts, scan)
-    d = np.hypot(*(w[:, None] - w[None]).transpose(2, 0, 1))
-    far = np.abs(t[scan][:, None] - t[scan][None]) >= 5.0
-    nearest = np.where(far, d, np.inf).min(axis=1)
     matched = nearest < 0.1
     assert 0.1 < matched.mean() < 0.9  # both kinds of point are there
     parts = consistency_parts(poses, pts, scan, t, p)
