@@ -8,6 +8,7 @@ import pytest
 from stages.slam.heading_fusion import recompose
 from stages.slam.map_consistency import (
     MapConsistency,
+    common_support_scores,
     consistency_parts,
     consistent_scale,
     heading_ramp,
@@ -54,12 +55,14 @@ def test_world_points_puts_body_points_along_the_poses() -> None:
     np.testing.assert_allclose(w, [[1.0, 3.0], [1.0, 0.0]], atol=1e-12)
 
 
-def _brute_force(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Random poses, 5 points per scan, and each point's distance to the nearest point of a scan 5 s away or more,
-    by a pairwise search over all points: ``t, poses, points, scan, nearest``."""
+def _brute_force(seed: int, poses: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Random poses (or ``poses``), 5 points per scan, and each point's distance to the nearest point of a scan 5 s
+    away or more, by a pairwise search over all points: ``t, poses, points, scan, nearest``."""
     rng = np.random.default_rng(seed)
     t = np.arange(60) * 0.5
-    poses = np.c_[rng.normal(0, 0.3, (60, 2)), rng.normal(0, 0.05, 60)]
+    drawn = np.c_[rng.normal(0, 0.3, (60, 2)), rng.normal(0, 0.05, 60)]
+    poses = drawn if poses is None else poses
     scan = np.repeat(np.arange(60), 5)
     pts = rng.uniform(-2, 2, (300, 2))
     w = world_points(poses, pts, scan)
@@ -89,6 +92,25 @@ def test_the_parts_split_the_score_as_a_brute_force_search_does() -> None:
     assert none.matched == 0.0 and np.isnan(none.matched_ms) and none.score == pytest.approx(0.25)
 
 
+def test_the_common_support_scores_equal_a_brute_force_search_on_one_set_of_points() -> None:
+    t, poses, pts, scan, nearest = _brute_force(5)
+    rng = np.random.default_rng(7)
+    moved = poses + np.c_[rng.normal(0, 0.05, (len(poses), 2)), rng.normal(0, 0.02, len(poses))]
+    *_, nearest_moved = _brute_force(5, moved)
+    p = MapConsistency(cell=0, neighbours=300, separation=5.0, truncation=0.1)
+    common = (nearest < 0.1) & (nearest_moved < 0.1)
+    assert 0.05 < common.mean() < (nearest < 0.1).mean()  # the moved poses lose some matches
+    scores, share = common_support_scores([poses, moved], pts, scan, t, p)
+    assert share == pytest.approx(float(common.mean()), rel=1e-12)
+    np.testing.assert_allclose(scores, [np.mean(nearest[common] ** 2), np.mean(nearest_moved[common] ** 2)],
+                               rtol=1e-12)
+    # the per-trajectory matched mean square averages other points: it is not what the common set scores
+    assert consistency_parts(moved, pts, scan, t, p).matched_ms != pytest.approx(scores[1], rel=1e-6)
+    nothing, none = common_support_scores([poses, moved], pts, scan, t, MapConsistency(cell=0, separation=100.0))
+    assert none == 0.0 and np.all(np.isnan(nothing))
+    assert common_support_scores([], pts, scan, t, p)[0].size == 0
+
+
 def test_the_perturbations_of_the_sweep() -> None:
     t, truth, _, _ = _room_run(3, n=60)
     np.testing.assert_allclose(scaled_positions(truth, 1.0), truth, rtol=0, atol=1e-12)
@@ -105,11 +127,13 @@ def test_the_criterion_chooses_by_the_matched_points_or_by_the_whole_score() -> 
     t, truth, pts, scan = _room_run(1)
     odometry = _drifted(truth, t, 4e-3)
     exact = -4e-3 * t
-    for criterion in ("matched", "capped"):
+    for criterion in ("matched", "capped", "common"):
         p = MapConsistency(alpha_max=1.5, criterion=criterion)
         choice = consistent_scale(odometry, 2 * exact, pts, scan, t, p)
-        parts = [consistency_parts(recompose(odometry, a * 2 * exact), pts, scan, t, p) for a in choice.alphas]
-        want = [q.matched_ms if criterion == "matched" else q.score for q in parts]
+        trajectories = [recompose(odometry, a * 2 * exact) for a in choice.alphas]
+        parts = [consistency_parts(traj, pts, scan, t, p) for traj in trajectories]
+        want = {"matched": [q.matched_ms for q in parts], "capped": [q.score for q in parts],
+                "common": common_support_scores(trajectories, pts, scan, t, p)[0]}[criterion]
         np.testing.assert_allclose(choice.scores, want, rtol=1e-12)
         assert choice.alpha == 0.5
 
@@ -137,11 +161,11 @@ def test_off_and_empty() -> None:
     assert off.alpha == 1.0 and off.scores.size == 1
     assert map_consistency(truth, np.zeros((0, 2)), np.zeros(0, np.int64), t) == 0.0
     # no endpoints: every scale scores the same, and the correction stays as the fusion gives it
-    for criterion in ("matched", "capped"):
+    for criterion in ("matched", "capped", "common"):
         blind = consistent_scale(truth, np.ones(len(t)), np.zeros((0, 2)), np.zeros(0, np.int64), t,
                                  MapConsistency(criterion=criterion))
         assert blind.alpha == 1.0
-        assert np.all(np.isnan(blind.scores)) if criterion == "matched" else np.all(blind.scores == 0)
+        assert np.all(np.isnan(blind.scores)) if criterion != "capped" else np.all(blind.scores == 0)
     with pytest.raises(ValueError, match="poses for"):
         map_consistency(truth[:-1], pts, scan, t)
 
@@ -180,3 +204,4 @@ def test_the_slam_parameters_carry_the_criterion() -> None:
     assert matched.criterion == "matched" and matched.alpha_max == 1.0
     with pytest.raises(ValidationError, match="fusion_alpha_criterion"):
         SlamParams(fusion_alpha_criterion="kernel")
+    assert SlamParams(fusion_alpha_criterion="common").config().consistency.criterion == "common"

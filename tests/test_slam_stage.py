@@ -207,11 +207,13 @@ def test_consistency_sweep_perturbs_the_odometry_and_names_bad_input(tmp_path: P
     for r in rows:  # the score is its two parts (0.5 m cap)
         assert 0 < r["matched"] <= 1
         assert r["score"] == pytest.approx(r["matched"] * r["matched_ms"] + (1 - r["matched"]) * 0.25, rel=1e-9)
+        assert 0 < r["common_ms"] < 0.25  # the points matched under every perturbation of its kind
     assert rows[0]["yaw_rmse_whole_deg"] == pytest.approx(one["yaw_rmse_whole_deg"], rel=1e-9)  # a scale: no yaw
     assert rows[3]["yaw_rmse_whole_deg"] != rows[5]["yaw_rmse_whole_deg"]
     s = consistency_sweep.summary(rows)
-    assert set(s) == {f"{k}_by_{w}" for k in ("scale", "ramp") for w in ("score", "matched", "truth")}
+    assert set(s) == {f"{k}_by_{w}" for k in ("scale", "ramp") for w in ("score", "matched", "common", "truth")}
     assert s["ramp_by_score"] == min(rows[3:], key=lambda r: r["score"])["value"]
+    assert s["scale_by_common"] == min(rows[:3], key=lambda r: r["common_ms"])["value"]
     text = capsys.readouterr().out
     assert "seq_s: scale by score" in text and "| ramp +0.1 |" in text and not list(tmp_path.glob("*.tmp"))
     # bad input: one line naming it, exit 2, the earlier output left as it was

@@ -6,9 +6,11 @@ scaled about the start (:func:`map_consistency.scaled_positions`; the odometry's
 simulated run, so an unbiased score is lowest near 1) and its heading given a linear ramp
 (:func:`map_consistency.heading_ramp`; the truth says which ramp undoes the odometry's drift). Per run and
 perturbation: the score relative to the odometry's, the share of points with a counterpart within the cap
-(:func:`map_consistency.consistency_parts`), and the whole-trajectory yaw and position RMSE against the ground
-truth. A score that keeps falling as the path contracts rewards overlap, not agreement
-(stages/slam/README.md, stop 52). Run folders need the odometry stage and a ground truth. Usage::
+(:func:`map_consistency.consistency_parts`), the mean square distance of the points matched under every
+perturbation of that kind (:func:`map_consistency.common_support_scores`, the ``common`` criterion), and the
+whole-trajectory yaw and position RMSE against the ground truth. A score that keeps falling as the path
+contracts rewards overlap, not agreement (stages/slam/README.md, stop 52). Run folders need the odometry stage
+and a ground truth. Usage::
 
     python -m stages.slam.consistency_sweep RUN [RUN ...] [--scales 0.94,1,1.06] [--ramps=-0.1,0,0.1] [--out F.jsonl]
 """
@@ -26,6 +28,7 @@ import numpy as np
 
 from stages.slam.map_consistency import (
     MapConsistency,
+    common_support_scores,
     consistency_parts,
     heading_ramp,
     scaled_positions,
@@ -41,8 +44,9 @@ RAMPS = (-0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2)
 def sweep_run(run_dir: Path, params: SlamParams, scales: Sequence[float] = SCALES,
               ramps: Sequence[float] = RAMPS) -> list[dict[str, Any]]:
     """One row per perturbation of ``run_dir``'s odometry: ``kind`` (``scale`` or ``ramp``), ``value``, the score,
-    its parts and the whole-trajectory errors against the run's ground truth; ``score_rel`` is the score minus the
-    unperturbed odometry's."""
+    its parts, the common points' mean square (``common_ms``, over the perturbations of that kind) and the
+    whole-trajectory errors against the run's ground truth; ``score_rel`` is the score minus the unperturbed
+    odometry's."""
     t_ns, odo, scans, truth, motion = load_inputs(run_dir, params)
     t = np.cumsum(motion.dt)
     points, scan = stacked_endpoints(scans)
@@ -52,12 +56,13 @@ def sweep_run(run_dir: Path, params: SlamParams, scales: Sequence[float] = SCALE
     base = consistency_parts(odo, points, scan, t, consistency).score
     rows = []
     for kind, values in (("scale", scales), ("ramp", ramps)):
-        for v in values:
-            est = scaled_positions(odo, v) if kind == "scale" else heading_ramp(odo, t, v)
+        estimates = [scaled_positions(odo, v) if kind == "scale" else heading_ramp(odo, t, v) for v in values]
+        common = common_support_scores([odo, *estimates], points, scan, t, consistency)[0][1:]
+        for v, est, common_ms in zip(values, estimates, common, strict=True):
             parts = consistency_parts(est, points, scan, t, consistency)
             row: dict[str, Any] = {"seq": run_dir.name, "kind": kind, "value": float(v), "score": parts.score,
                                    "score_rel": parts.score - base, "matched": parts.matched,
-                                   "matched_ms": parts.matched_ms}
+                                   "matched_ms": parts.matched_ms, "common_ms": float(common_ms)}
             e = error_fields(t_ns, np.asarray(est, np.float64), truth)
             rows.append(row | {k: e[k] for k in ("yaw_rmse_whole_deg", "pos_rmse_whole_m")})
     return rows
@@ -65,7 +70,8 @@ def sweep_run(run_dir: Path, params: SlamParams, scales: Sequence[float] = SCALE
 
 def summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Per kind: the value the score picks (lowest), the one the matched points' mean square picks
-    (``slam.fusion_alpha_criterion = matched``) and the one the truth picks (lowest yaw RMSE for a ramp, lowest position
+    (``slam.fusion_alpha_criterion = matched``), the one the common points' picks (``common``) and the one the
+    truth picks (lowest yaw RMSE for a ramp, lowest position
     RMSE for a scale)."""
     out: dict[str, Any] = {}
     for kind, err in (("scale", "pos_rmse_whole_m"), ("ramp", "yaw_rmse_whole_deg")):
@@ -74,17 +80,19 @@ def summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
             continue
         out[f"{kind}_by_score"] = min(sel, key=lambda r: r["score"])["value"]
         out[f"{kind}_by_matched"] = min(sel, key=lambda r: r["matched_ms"] if r["matched"] > 0 else np.inf)["value"]
+        out[f"{kind}_by_common"] = min(sel, key=lambda r: np.nan_to_num(r["common_ms"], nan=np.inf))["value"]
         out[f"{kind}_by_truth"] = min(sel, key=lambda r: r[err])["value"]
     return out
 
 
 def table(rows: Sequence[dict[str, Any]]) -> str:
     """A markdown table of one run's rows."""
-    lines = ["| perturbation | score - odometry's | matched share | matched mean square, m^2 | yaw RMSE, deg | "
-             "position RMSE, m |", "|---|---|---|---|---|---|"]
+    lines = ["| perturbation | score - odometry's | matched share | matched mean square, m^2 | common mean square, "
+             "m^2 | yaw RMSE, deg | position RMSE, m |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['kind']} {r['value']:+g} | {r['score_rel']:+.4f} | {r['matched']:.3f} | "
-                     f"{r['matched_ms']:.4f} | {r['yaw_rmse_whole_deg']:.2f} | {r['pos_rmse_whole_m']:.2f} |")
+                     f"{r['matched_ms']:.4f} | {r['common_ms']:.4f} | {r['yaw_rmse_whole_deg']:.2f} | "
+                     f"{r['pos_rmse_whole_m']:.2f} |")
     return "\n".join(lines)
 
 

@@ -56,11 +56,12 @@ class MapConsistency(BaseModel):
     alpha_max: float = Field(1.5, ge=0, description="largest scale of the fused correction searched (0: off, the "
                              "fused estimate as the fusion gives it; 1.5 chosen on the calibration runs, stop 51)")
     alpha_step: float = Field(0.125, gt=0, description="step of the scale's grid")
-    criterion: Literal["capped", "matched"] = Field(
+    criterion: Literal["capped", "matched", "common"] = Field(
         "capped", description="what the scale minimises: 'capped', the whole score (stop 51; it also falls when "
-        "more points merely overlap), or 'matched', the mean square distance of the points that have a counterpart "
+        "more points merely overlap), 'matched', the mean square distance of the points that have a counterpart "
         "within the cap (how well the overlap agrees; better on the calibration runs, worse on the evaluated ones: "
-        "not the default, stages/slam/README.md, stop 52)")
+        "stages/slam/README.md, stop 52), or 'common', the same for the one set of points matched at every scale "
+        "searched (:func:`common_support_scores`, stop 53)")
 
 
 class ScaleChoice(NamedTuple):
@@ -94,6 +95,32 @@ class ConsistencyParts(NamedTuple):
     matched_ms: float  # mean squared distance of those points (m^2; nan where none)
 
 
+def thinned(world: F64, t_points: F64, params: MapConsistency | None = None) -> I64:
+    """Indices of the points :func:`consistency_parts` scores: the finite ones, one per ``cell`` and ``block``
+    (a wall seen by many scans in a row counts once a block; ``cell = 0``: every finite point), in order."""
+    p = params or MapConsistency()
+    idx = np.flatnonzero(np.all(np.isfinite(world), axis=1))
+    if p.cell > 0 and len(idx):
+        key = np.c_[np.floor(world[idx] / p.cell).astype(np.int64), np.floor(t_points[idx] / p.block).astype(np.int64)]
+        _, first = np.unique(key, axis=0, return_index=True)
+        idx = idx[np.sort(first)]
+    return idx.astype(np.int64)
+
+
+def nearest_far(world: F64, t_points: F64, params: MapConsistency | None = None) -> tuple[F64, npt.NDArray[np.bool_]]:
+    """Each point's distance to the nearest point at least ``separation`` s away in time, capped at
+    ``truncation`` (``(N,)``), and whether one lies within the cap (``(N,)``)."""
+    p = params or MapConsistency()
+    if len(world) == 0:
+        return np.zeros(0), np.zeros(0, bool)
+    k = min(p.neighbours, len(world))
+    d, j = cKDTree(world).query(world, k=k, distance_upper_bound=p.truncation)
+    d, j = d.reshape(len(world), k), j.reshape(len(world), k)
+    found = np.isfinite(d)
+    far = found & (np.abs(t_points[np.where(found, j, 0)] - t_points[:, None]) >= p.separation)
+    return np.where(far, d, p.truncation).min(axis=1), far.any(axis=1)
+
+
 def consistency_parts(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.ArrayLike, t_s: npt.ArrayLike,
                       params: MapConsistency | None = None) -> ConsistencyParts:
     """:func:`map_consistency` with its two parts: ``score = matched * matched_ms + (1 - matched) *
@@ -102,29 +129,46 @@ def consistency_parts(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.Arr
     p = params or MapConsistency()
     t = np.asarray(t_s, np.float64)
     scan = np.asarray(scan, np.int64)
+    _check_stamps(poses, t)
+    w = world_points(poses, points, scan)
+    tp = t[scan]
+    keep = thinned(w, tp, p)
+    if len(keep) == 0:
+        return ConsistencyParts(0.0, 0.0, float("nan"))
+    nearest, matched = nearest_far(w[keep], tp[keep], p)
+    ms = float(np.mean(nearest[matched] ** 2)) if matched.any() else float("nan")
+    return ConsistencyParts(float(np.mean(nearest ** 2)), float(np.mean(matched)), ms)
+
+
+def _check_stamps(poses: npt.ArrayLike, t: F64) -> None:
     n_poses = len(np.asarray(poses).reshape(-1, 3))
     if len(t) != n_poses:
         raise ValueError(f"map_consistency: {n_poses} poses for {len(t)} stamps")
-    w = world_points(poses, points, scan)
+
+
+def common_support_scores(trajectories: Sequence[npt.ArrayLike], points: npt.ArrayLike, scan: npt.ArrayLike,
+                          t_s: npt.ArrayLike, params: MapConsistency | None = None) -> tuple[F64, float]:
+    """The ``common`` criterion (stages/slam/README.md, stop 53): the points are thinned once, on the first
+    trajectory; the ones that have a counterpart within the cap on *every* trajectory form one fixed set, and each
+    trajectory scores their mean square distance. The same points for every candidate, so a trajectory cannot
+    score better by making more points overlap. Returns the scores (nan where the set is empty) and the set's
+    share of the thinned points."""
+    p = params or MapConsistency()
+    t = np.asarray(t_s, np.float64)
+    scan = np.asarray(scan, np.int64)
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    if not trajectories:
+        return np.zeros(0), 0.0
+    for traj in trajectories:
+        _check_stamps(traj, t)
     tp = t[scan]
-    keep = np.all(np.isfinite(w), axis=1)
-    w, tp = w[keep], tp[keep]
-    if len(w) == 0:
-        return ConsistencyParts(0.0, 0.0, float("nan"))
-    if p.cell > 0:  # one point per cell and time block: a wall seen by many scans in a row counts once a block
-        key = np.c_[np.floor(w / p.cell).astype(np.int64), np.floor(tp / p.block).astype(np.int64)]
-        _, first = np.unique(key, axis=0, return_index=True)
-        first.sort()
-        w, tp = w[first], tp[first]
-    k = min(p.neighbours, len(w))
-    d, j = cKDTree(w).query(w, k=k, distance_upper_bound=p.truncation)
-    d, j = d.reshape(len(w), k), j.reshape(len(w), k)
-    found = np.isfinite(d)
-    far = found & (np.abs(tp[np.where(found, j, 0)] - tp[:, None]) >= p.separation)
-    nearest = np.where(far, d, p.truncation).min(axis=1)
-    matched = far.any(axis=1)
-    ms = float(np.mean(nearest[matched] ** 2)) if matched.any() else float("nan")
-    return ConsistencyParts(float(np.mean(np.minimum(nearest, p.truncation) ** 2)), float(np.mean(matched)), ms)
+    keep = thinned(world_points(trajectories[0], pts, scan), tp, p)
+    nearest, matched = zip(*(nearest_far(world_points(traj, pts[keep], scan[keep]), tp[keep], p)
+                             for traj in trajectories), strict=True)
+    common = np.logical_and.reduce(matched) if len(keep) else np.zeros(0, bool)
+    if not common.any():
+        return np.full(len(trajectories), np.nan), 0.0
+    return np.array([float(np.mean(n[common] ** 2)) for n in nearest]), float(np.mean(common))
 
 
 def map_consistency(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.ArrayLike, t_s: npt.ArrayLike,
@@ -156,8 +200,9 @@ def heading_ramp(odometry: npt.ArrayLike, t_s: npt.ArrayLike, total: float) -> F
 def consistent_scale(odometry: npt.ArrayLike, correction: npt.ArrayLike, points: npt.ArrayLike,
                      scan: npt.ArrayLike, t_s: npt.ArrayLike, params: MapConsistency | None = None) -> ScaleChoice:
     """The scale ``alpha`` of the heading ``correction (T,)`` on ``odometry (T, 3)`` whose recomposed trajectory is
-    the most consistent over ``{0, alpha_step, ..., alpha_max}`` (:func:`consistency_parts`: the matched points'
-    mean square distance, or the whole capped score, as ``params.criterion`` says); of equal scores the one
+    the most consistent over ``{0, alpha_step, ..., alpha_max}`` (:func:`consistency_parts`: the whole capped
+    score, or the matched points' mean square distance; :func:`common_support_scores`: that of the points matched
+    at every scale; as ``params.criterion`` says); of equal scores the one
     nearest 1 (the correction as the fusion gives it: scans without endpoints, or without any point matched, say
     nothing). ``alpha_max = 0``: 1, nothing scored."""
     p = params or MapConsistency()
@@ -165,8 +210,12 @@ def consistent_scale(odometry: npt.ArrayLike, correction: npt.ArrayLike, points:
         return ScaleChoice(1.0, np.ones(1), np.zeros(1))
     alphas = np.arange(int(np.floor(p.alpha_max / p.alpha_step + 1e-9)) + 1) * p.alpha_step
     c = np.asarray(correction, np.float64)
-    parts = [consistency_parts(recompose(odometry, a * c), points, scan, t_s, p) for a in alphas]
-    scores = np.array([q.score if p.criterion == "capped" else q.matched_ms for q in parts])
+    trajectories = [recompose(odometry, a * c) for a in alphas]
+    if p.criterion == "common":
+        scores = common_support_scores(trajectories, points, scan, t_s, p)[0]
+    else:
+        parts = [consistency_parts(traj, points, scan, t_s, p) for traj in trajectories]
+        scores = np.array([q.score if p.criterion == "capped" else q.matched_ms for q in parts])
     key = np.where(np.isnan(scores), np.inf, scores)  # nothing matched (nan): no evidence at that scale
     best = int(np.lexsort((np.abs(alphas - 1.0), key))[0])  # the lowest score; of equal ones, nearest 1
     return ScaleChoice(float(alphas[best]), alphas, scores)

@@ -230,10 +230,11 @@ class SlamParams(StageParams):
                                     "radar scans' endpoints most consistent with each other along the trajectory "
                                     "(stages/slam/map_consistency.py; chosen on the calibration runs at stop 51; "
                                     "0: off, the correction as the fusion gives it)")
-    fusion_alpha_criterion: Literal["capped", "matched"] = Field(
+    fusion_alpha_criterion: Literal["capped", "matched", "common"] = Field(
         "capped", description="estimate = fused: what the scale minimises: 'capped', the whole capped score (stop "
-        "51), which also falls when more endpoints merely overlap, or 'matched', the mean square distance of the "
-        "endpoints that have a counterpart (stop 52: better on the calibration runs, worse on the evaluated ones)")
+        "51), which also falls when more endpoints merely overlap, 'matched', the mean square distance of the "
+        "endpoints that have a counterpart (stop 52: better on the calibration runs, worse on the evaluated ones), "
+        "or 'common', that of the endpoints matched at every scale searched (stop 53)")
     # -- FastSLAM grid baseline
     grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
     grid_l_occ: float = Field(0.85, gt=0, description="fastslam_grid log-odds added at an endpoint cell")
