@@ -11,7 +11,8 @@ instead of one scan against the map before it.
 :func:`consistent_scale` uses it on the fused estimate (stages/slam/README.md, stop 51): the fusion's heading
 correction ``c`` (:func:`heading_fusion.fuse_heading`) is applied scaled by the ``alpha`` in
 ``{0, step, ..., alpha_max}`` whose trajectory (:func:`heading_fusion.recompose`) scores lowest (or, with
-``MapConsistency.criterion = 'matched'``, whose matched points agree best). ``alpha = 0``
+``MapConsistency.criterion = 'matched'``, whose matched points agree best; with ``'common'``, whose one fixed set
+of points matched at every scale agrees best, :func:`common_support_scores`). ``alpha = 0``
 is the odometry and ``alpha = 1`` the fused estimate, so the scan's own geometry decides how much of the
 filter's heading the result keeps.
 
