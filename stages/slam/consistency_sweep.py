@@ -71,8 +71,7 @@ def sweep_run(run_dir: Path, params: SlamParams, scales: Sequence[float] = SCALE
 def summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Per kind: the value the score picks (lowest), the one the matched points' mean square picks
     (``slam.fusion_alpha_criterion = matched``), the one the common points' picks (``common``) and the one the
-    truth picks (lowest yaw RMSE for a ramp, lowest position
-    RMSE for a scale)."""
+    truth picks (lowest yaw RMSE for a ramp, lowest position RMSE for a scale)."""
     out: dict[str, Any] = {}
     for kind, err in (("scale", "pos_rmse_whole_m"), ("ramp", "yaw_rmse_whole_deg")):
         sel = [r for r in rows if r["kind"] == kind]

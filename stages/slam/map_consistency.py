@@ -166,7 +166,7 @@ def common_support_scores(trajectories: Sequence[npt.ArrayLike], points: npt.Arr
     keep = thinned(world_points(trajectories[0], pts, scan), tp, p)
     nearest, matched = zip(*(nearest_far(world_points(traj, pts[keep], scan[keep]), tp[keep], p)
                              for traj in trajectories), strict=True)
-    common = np.logical_and.reduce(matched) if len(keep) else np.zeros(0, bool)
+    common = np.logical_and.reduce(matched)
     if not common.any():
         return np.full(len(trajectories), np.nan), 0.0
     return np.array([float(np.mean(n[common] ** 2)) for n in nearest]), float(np.mean(common))
