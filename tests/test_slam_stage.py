@@ -223,6 +223,26 @@ def test_consistency_sweep_perturbs_the_odometry_and_names_bad_input(tmp_path: P
     err = capsys.readouterr().err.strip()
     assert err.startswith("consistency_sweep:") and "\n" not in err
     assert len(out.read_text().splitlines()) == 6
+    # --kept: the scales of the fused correction of a kept smoothed trajectory (here the truth itself, so the
+    # correction points the odometry's heading towards the truth's)
+    from stages.slam.table3 import save_trajectory
+
+    scan_ns = pq.read_table(inp["dirs"]["odometry"] / "odometry.parquet")["t_ns"].to_numpy()
+    save_trajectory(tmp_path / "kept", "seq_s", "rich_slam, smoothed", 3, "{}", scan_ns, gt.astype(np.float64),
+                    (t_ns, gt[:, :2].astype(np.float64), gt[:, 2].astype(np.float64)), "smoothed")
+    prof = tmp_path / "profile.jsonl"
+    assert consistency_sweep.main([args[0], "--kept", str(tmp_path / "kept"), "--alphas", "0,0.5,1",
+                                   "--set", "workers=0", "--out", str(prof)]) == 0
+    steps = [json.loads(line) for line in prof.read_text().splitlines()]
+    assert [(r["kind"], r["value"], r["seed"]) for r in steps] == [("alpha", a, 3) for a in (0.0, 0.5, 1.0)]
+    assert steps[0]["score_rel"] == 0.0 and steps[0]["yaw_rmse_whole_deg"] == pytest.approx(
+        one["yaw_rmse_whole_deg"], rel=1e-9)  # alpha 0: the odometry
+    assert steps[2]["yaw_rmse_whole_deg"] < steps[1]["yaw_rmse_whole_deg"] < steps[0]["yaw_rmse_whole_deg"]
+    assert 0 < steps[0]["common_share"] <= 1 and all(0 < r["common_ms"] < 0.25 for r in steps)
+    assert consistency_sweep.summary(steps)["alpha_by_truth"] == 1.0
+    assert "seq_s seed 3: alpha by score" in capsys.readouterr().out
+    assert consistency_sweep.main([args[0], "--kept", str(tmp_path / "none"), "--out", str(prof)]) == 2
+    assert "no smoothed rich_slam trajectory kept" in capsys.readouterr().err
 
 
 def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -352,6 +372,24 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest
     assert 0 <= from_kept["fusion_alpha"] <= 1.5  # the default searches up to 1.5
     for k in ("yaw_rmse_whole_deg", "pos_rmse_whole_m"):
         assert kept_a[k] == pytest.approx(run_a[k], rel=1e-9, abs=1e-12)
+    # consistency_sweep --kept: every searched scale of the same kept trajectory, its criteria and true errors
+    from stages.slam import consistency_sweep
+
+    prof = tmp_path / "profile.jsonl"
+    assert consistency_sweep.main([*base5[:1], *base5[5:], "--kept", str(keep), "--method", "fastslam_grid",
+                                   "--out", str(prof)]) == 0
+    steps = [json.loads(line) for line in prof.read_text().splitlines()]
+    assert [r["value"] for r in steps] == [0.125 * i for i in range(13)] and {r["seed"] for r in steps} == {0}
+    assert steps[0]["yaw_rmse_whole_deg"] == pytest.approx(odo2["yaw_rmse_whole_deg"], rel=1e-9)  # 0: the odometry
+    at = next(r for r in steps if r["value"] == from_kept["fusion_alpha"])  # the scale the fused row chose
+    assert at["score"] == min(r["score"] for r in steps)
+    for k in ("yaw_rmse_whole_deg", "pos_rmse_whole_m"):
+        assert at[k] == pytest.approx(from_kept[k], rel=1e-9, abs=1e-12)
+    # a 2.4 s run has no scans 5 s apart: nothing matched, every scale scores the cap, the fused row keeps 1
+    assert from_kept["fusion_alpha"] == 1.0 and all(r["matched"] == 0 and r["score"] == 0.25 for r in steps)
+    assert steps[0]["common_share"] == 0 and all(np.isnan(r["common_ms"]) for r in steps)
+    assert consistency_sweep.main([*base5[:1], "--kept", str(tmp_path), "--out", str(prof)]) == 2  # nothing kept
+    assert len(prof.read_text().splitlines()) == 13
     # a Hilbert filter under the informed exponent: --from-kept takes the exponent the filter ran with
     keep9, out9, out10 = tmp_path / "kept9", tmp_path / "t3_kept9.jsonl", tmp_path / "t3_fused9.jsonl"
     base9 = [str(tmp_path / "seq_a"), "--methods", "rich_slam", "--seeds", "0", "--set", "n_particles=4", "--set",

@@ -28,7 +28,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -327,6 +327,41 @@ def save_trajectory(keep: Path, seq: str, label: str, seed: int, config: str, t_
     return path
 
 
+def kept_smoothed(keep: Path, seq: str, method: str, overrides: dict[str, Any] | None = None
+                  ) -> list[tuple[Path, Any, dict[str, Any]]]:
+    """The ``smoothed`` trajectories of ``method`` kept for ``seq`` (:func:`save_trajectory`) whose configuration
+    agrees with ``overrides``: (path, the loaded file, its configuration), in file-name order."""
+    default_estimate = SlamParams().estimate
+    out = []
+    for path in sorted((keep / seq).glob(f"{method}*_seed*.npz")):
+        kept = np.load(path)
+        base = json.loads(str(kept["config"]))
+        # the kept trajectory's estimate: recorded since it was added, else the row's config or default
+        est_kept = str(kept["estimate"]) if "estimate" in kept.files and str(kept["estimate"]) else \
+            base.get("estimate", default_estimate)
+        if str(kept["label"]) not in (method, f"{method}, smoothed") or est_kept != "smoothed":
+            continue
+        if any(k in base and base[k] != v for k, v in (overrides or {}).items()):
+            continue
+        out.append((path, kept, base))
+    return out
+
+
+def kept_fusion(method: str, params: SlamParams, odometry: F64, scans: Callable[[], list[BeamSamples]]
+                ) -> tuple[HeadingFusion, F64 | None, MapConsistency]:
+    """The fusion model, the weight's heading information along the odometry (None unless the model is informed)
+    and the scale's search, as the filter run of ``method`` with ``params`` takes them; ``scans`` is called only
+    when the information is needed."""
+    cfg = params.config()
+    if cfg.fusion.information_ref <= 0:
+        return cfg.fusion, None, cfg.consistency
+    beams = scans()
+    basis = hm.make_basis(*domain_from_trajectory(odometry[:, :2], params.domain_padding), params.n_basis,
+                          params.basis_kind)
+    cfg = informed_exponent(method, cfg, basis, odometry, beams)  # the exponent the filter ran with
+    return (*informed_fusion(method, cfg, basis, odometry, beams), cfg.consistency)
+
+
 def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any], out: Path,
                     methods: Sequence[str] = ("rich_slam", "fastslam_grid")) -> int:
     """Rows of the ``fused`` estimate computed from kept ``smoothed`` trajectories (:func:`save_trajectory`)
@@ -340,19 +375,17 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
     for run_dir in runs:
         odometry: tuple[npt.NDArray[np.int64], F64, OdometryMotion] | None = None  # read once per run folder
         scans: list[BeamSamples] | None = None
+
+        def load_scans() -> list[BeamSamples]:
+            nonlocal scans
+            if scans is None:
+                scans = load_inputs(run_dir, p)[2]  # noqa: B023 (called within this iteration only)
+            return scans
+
         # the fusion model, the weight's information and the scale's search, per (method, the kept run's config)
         fusions: dict[tuple[str, str], tuple[HeadingFusion, F64 | None, MapConsistency]] = {}
         for m in methods:
-            for path in sorted((keep / run_dir.name).glob(f"{m}*_seed*.npz")):
-                kept = np.load(path)
-                base = json.loads(str(kept["config"]))
-                # the kept trajectory's estimate: recorded since it was added, else the row's config or default
-                est_kept = str(kept["estimate"]) if "estimate" in kept.files and str(kept["estimate"]) else \
-                    base.get("estimate", p.estimate)
-                if str(kept["label"]) not in (m, f"{m}, smoothed") or est_kept != "smoothed":
-                    continue
-                if any(k in base and base[k] != v for k, v in overrides.items()):
-                    continue
+            for path, kept, base in kept_smoothed(keep, run_dir.name, m, overrides):
                 config = json.dumps({**base, **fusion_keys, "estimate": "fused"}, sort_keys=True)
                 seed = int(kept["seed"])
                 label = f"{m}, fused"
@@ -366,25 +399,13 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
                                      "trajectories of this odometry again")
                 key = (m, json.dumps(base, sort_keys=True))
                 if key not in fusions:  # as the filter run takes it: the weight's information along the odometry
-                    params = SlamParams(**{**base, **fusion_keys})
-                    cfg = params.config()
-                    if cfg.fusion.information_ref > 0:
-                        if scans is None:
-                            scans = load_inputs(run_dir, p)[2]
-                        basis = hm.make_basis(*domain_from_trajectory(odo[:, :2], params.domain_padding),
-                                              params.n_basis, params.basis_kind)
-                        # the exponent the filter ran with (informed_exponent_information), then its information
-                        cfg = informed_exponent(m, cfg, basis, odo, scans)
-                        fusions[key] = (*informed_fusion(m, cfg, basis, odo, scans), cfg.consistency)
-                    else:
-                        fusions[key] = (cfg.fusion, None, cfg.consistency)
+                    fusions[key] = kept_fusion(m, SlamParams(**{**base, **fusion_keys}), odo, load_scans)
                 model, information, consistency = fusions[key]
                 sigma_deg, median_information = fusion_record(model, information)
                 extra = {} if median_information is None else {
                     "heading_information": median_information, "fusion_filter_sigma_deg": sigma_deg}
-                if consistency.alpha_max > 0 and scans is None:
-                    scans = load_inputs(run_dir, p)[2]
-                fused, jumps, alpha = fused_estimate(odo, kept["pose"], motion, model, scans or (), consistency)
+                beams = load_scans() if consistency.alpha_max > 0 else []
+                fused, jumps, alpha = fused_estimate(odo, kept["pose"], motion, model, beams, consistency)
                 if consistency.alpha_max > 0:
                     extra["fusion_alpha"] = alpha
                 truth: Truth = (kept["truth_t_ns"], kept["truth_xy"], kept["truth_yaw"])
