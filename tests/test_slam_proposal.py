@@ -9,7 +9,7 @@ from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import sample_beams
 from stages.slam.heading_fusion import informed
 from stages.slam.methods import OdometryMotion, SlamConfig, domain_from_trajectory, fused_estimate, run_method
-from stages.slam.rbpf import MotionNoise, Proposal, YawBias, propagate, weighted_mean_pose
+from stages.slam.rbpf import MotionNoise, Proposal, WideMode, YawBias, propagate, weighted_mean_pose
 from stages.slam.se2 import compose, wrap_angle
 from stages.slam.synthetic import make_run
 
@@ -58,6 +58,42 @@ def test_a_share_of_the_particles_carries_the_bias_the_rest_none_through_walks_a
     assert np.all(half.bias[idx >= 5] == 0.0)
 
 
+def test_the_wide_mode_draws_gmapping_noise_for_its_particles_and_keeps_its_share() -> None:
+    """``WideMode``: the particles in the wide mode draw GMapping's noise, the others the odometry's covariance;
+    the mode is resampled with the particle, and switching draws it afresh from the stationary share."""
+    n = 40000
+    cov = np.tile(np.diag([0.002, 0.002, 0.0005]) ** 2, (2, 1, 1))
+    noise = MotionNoise(0.02, 0.005, 0.05, 0.0, 0.03, 0.0)
+    u = [0.1, 0.0, 0.0]
+    p = Proposal(noise, n, np.random.default_rng(0), cov=cov, wide=WideMode(share=0.3, switch=0.0))
+    assert p.wide_mode is not None and abs(p.wide_mode.mean() - 0.3) < 0.01
+    mode = p.wide_mode.copy()
+    d = p.draw(u, n) - np.asarray(u)
+    np.testing.assert_array_equal(p.wide_mode, mode)  # switch 0: nobody changes mode
+    s_xy, s_yaw = noise.std(u)
+    np.testing.assert_allclose(d[mode].std(axis=0), [s_xy, s_xy, s_yaw], rtol=0.03)
+    np.testing.assert_allclose(d[~mode].std(axis=0), np.sqrt(np.diag(cov[1])), rtol=0.03)
+    w = np.full(n, 1.0 / n)
+    assert p.wide_share(w) == pytest.approx(mode.mean())
+    idx = np.flatnonzero(mode)[np.arange(n) % int(mode.sum())]  # resampled onto the wide particles only
+    p.select(idx)
+    assert p.wide_mode.all() and p.wide_share(w) == pytest.approx(1.0)
+    q = Proposal(noise, n, np.random.default_rng(1), cov=cov, wide=WideMode(share=0.3, switch=0.1))
+    q.select(np.zeros(n, np.int64))  # everyone a copy of particle 0: all in one mode
+    assert q.wide_mode is not None and q.wide_mode.mean() in (0.0, 1.0)
+    for _ in range(60):  # switching pulls the share back to 0.3: 1 - 0.9^60 of the particles redrawn
+        q.draw(u, n)
+    assert abs(q.wide_mode.mean() - 0.3) < 0.02
+    # without the mode: the draws of before, to the bit
+    a = Proposal(noise, 50, np.random.default_rng(5), cov=cov).draw(u, 50)
+    b = Proposal(noise, 50, np.random.default_rng(5), cov=cov, wide=None).draw(u, 50)
+    np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="needs cov"):
+        Proposal(noise, 3, np.random.default_rng(0), wide=WideMode())
+    with pytest.raises(ValueError, match="Laplace"):
+        Proposal(noise, 3, np.random.default_rng(0), cov=cov, wide=WideMode()).prior(u, 3)
+
+
 def test_run_method_refuses_the_odometry_covariance_without_it() -> None:
     run = make_run(5, np.random.default_rng(0))
     basis = hm.make_basis([10.0, 10.0], [0.0, 0.0], 16)
@@ -88,6 +124,30 @@ def test_bias_state_converges_to_a_constant_gyro_bias_and_bounds_the_heading_err
     assert abs(r.yaw_bias[-1] - bias) < 0.2 * bias  # converged within 20 %
     assert abs(np.mean(r.yaw_bias[-100:]) - bias) < 0.2 * bias
     assert err.max() < 0.3 * odo[-1] and err[-100:].max() < 3.0
+
+
+def test_the_wide_mode_follows_an_odometry_that_drifts_beyond_its_covariance() -> None:
+    """An odometry whose yaw drifts 0.57 deg/s while its covariance claims 0.017 deg per scan: the narrow proposal
+    cannot leave it, the wide mode's particles can, and the weights move onto them."""
+    n, bias = 600, 0.01
+    run = make_run(n, np.random.default_rng(1), beams_per_scan=30, outlier_fraction=0.0, odo_trans_noise=0.005,
+                   odo_yaw_noise=0.0003, odo_yaw_bias=bias * 0.1)
+    scans = [sample_beams(p, np.zeros(2), 1.0, 5.0) for p in run.scans]
+    half, centre = domain_from_trajectory(run.odometry[:, :2], 5.0)
+    basis = hm.make_basis(half, centre, 256)
+    motion = OdometryMotion(np.tile(np.diag([0.005, 0.005, 0.0003]) ** 2, (n, 1, 1)), np.full(n, 0.1))
+    final = {}
+    for wide in (None, WideMode(share=0.2, switch=0.01)):
+        cfg = SlamConfig(n_particles=50, workers=0, proposal="odometry_covariance", wide=wide,
+                         noise=MotionNoise(0.002, 0.0005, 0.05, 0.005, 0.03, 0.06), estimate="weighted_mean")
+        r = run_method("fastslam_grid", run.odometry, scans, basis, cfg, seed=0, motion=motion)
+        final[wide is not None] = abs(np.degrees(wrap_angle(r.poses[-1, 2] - run.groundtruth[-1, 2])))
+        assert (r.wide_share is None) == (wide is None)
+        if r.wide_share is not None:
+            assert np.mean(r.wide_share[300:]) > 2 * 0.2  # the weights favour the wide particles
+    odo = abs(np.degrees(wrap_angle(run.odometry[-1, 2] - run.groundtruth[-1, 2])))
+    assert odo > 30 and final[False] > 0.9 * odo  # the narrow proposal stays with the odometry
+    assert final[True] < 0.75 * final[False]
 
 
 def test_weighted_mean_pose_is_circular_in_yaw_and_picks_a_one_hot_particle() -> None:

@@ -34,6 +34,7 @@ from stages.slam.rbpf import (
     MotionNoise,
     Proposal,
     Resampling,
+    WideMode,
     YawBias,
     odometry_increments,
 )
@@ -81,6 +82,9 @@ class SlamConfig:
     proposal: ProposalKind = "gmapping"
     #: factor on the odometry's increment covariance in the ``odometry_covariance`` proposal (1: as written)
     proposal_scale: float = 1.0
+    #: a wide mode (GMapping's ``noise``) for a share of the particles beside the ``odometry_covariance`` proposal
+    #: (None: off; never ``rich_slam_paper`` nor ``rich_slam_refined``)
+    wide: WideMode | None = None
     #: each particle's yaw-rate bias state (None: none); ``rich_slam_paper`` never has one
     yaw_bias: YawBias | None = None
     resampling: Resampling = "systematic"
@@ -144,11 +148,11 @@ class SlamConfig:
         undelayed; every other method runs with this one."""
         if method in REFINED_METHODS:
             # the refinement works on one basis, the global map, and reads its means: no submaps, no delayed map
-            return replace(self, submaps=None, map_delay=0, informed_exponent_information=None)
+            return replace(self, submaps=None, map_delay=0, informed_exponent_information=None, wide=None)
         if method not in PAPER_METHODS:
             return self
-        return replace(self, proposal="gmapping", yaw_bias=None, estimate="best_per_scan", likelihood_exponent=1.0,
-                       informed_exponent_information=None,
+        return replace(self, proposal="gmapping", yaw_bias=None, wide=None, estimate="best_per_scan",
+                       likelihood_exponent=1.0, informed_exponent_information=None,
                        submaps=None, support_variance=None, resample_keep_mean=False, outlier=0.0,
                        grid_share=0.0, map_delay=0, endpoint_tolerance=PAPER_ENDPOINT_TOLERANCE)
 
@@ -190,7 +194,8 @@ def make_proposal(method: str, cfg: SlamConfig, motion: OdometryMotion | None, r
         raise ValueError(f"{method}: proposal = {kind}{' with the yaw-rate bias state' if bias else ''} needs the "
                          f"odometry's increment covariance and scan intervals (OdometryMotion)")
     cov = motion.cov * cfg.proposal_scale if kind == "odometry_covariance" and motion is not None else None
-    return Proposal(cfg.noise, cfg.n_particles, rng, cov=cov, dt=None if motion is None else motion.dt, bias=bias)
+    return Proposal(cfg.noise, cfg.n_particles, rng, cov=cov, dt=None if motion is None else motion.dt, bias=bias,
+                    wide=cfg.wide if cov is not None else None)
 
 
 @dataclass
@@ -224,6 +229,8 @@ class MethodResult:
     likelihood_exponent: float | None = None
     #: the scale of the fusion's heading correction that the fused estimate applies (:func:`fused_estimate`)
     fusion_alpha: float | None = None
+    #: (T,) the weight on the particles in the wide mode per scan (``cfg.wide`` only)
+    wide_share: F64 | None = None
 
 
 def domain_from_trajectory(xy: npt.ArrayLike, padding: float) -> tuple[F64, F64]:
@@ -382,6 +389,7 @@ def run_method(
         np.asarray(h.yaw_bias) if proposal.bias is not None else None, estimates,
         *_submap_counts(maps), fusion_jumps, sigma_deg, median_information,
         likelihood_exponent=cfg.likelihood_exponent if method in HILBERT_METHODS else None, fusion_alpha=alpha,
+        wide_share=np.asarray(h.wide_share) if proposal.wide is not None else None,
     )
 
 

@@ -86,19 +86,41 @@ class YawBias:
     share: float = 1.0
 
 
+@dataclass(frozen=True)
+class WideMode:
+    """A second motion mode for a share of the particles: GMapping's wide fitted noise (:class:`MotionNoise`)
+    instead of the odometry's own increment covariance, for when the odometry drifts more than its covariance
+    says (stages/slam/README.md, stop 54).
+
+    Each particle is in one of the two modes; the mode is resampled with it, so where the weights favour the wide
+    particles (the odometry's heading is off) they take over the cloud, and where the odometry is honest the narrow
+    ones do. Every scan a particle's mode is drawn afresh from the stationary ``share`` with probability
+    ``switch``, so neither mode dies out for good. The motion model is then a two-state Markov mixture, and the
+    filter samples from it exactly: the weights stay eq. 22's likelihoods.
+    """
+
+    #: stationary share of the particles in the wide mode (also the share at the start)
+    share: float = 0.1
+    #: per-scan probability that a particle's mode is drawn afresh from ``share``
+    switch: float = 0.01
+
+
 class Proposal:
     """The proposal q of eq. 21 for every particle: the odometry increment plus noise, either GMapping's
     fitted form (:class:`MotionNoise`, ``cov`` None) or the odometry's own increment covariance ``cov[i]``
-    (``(T, 3, 3)``, body frame), and optionally each particle's yaw-rate bias (:class:`YawBias`, needs the
-    scan intervals ``dt``). Draws come from ``rng`` in a fixed order, so that the numpy and torch filters
-    draw the same; with ``cov`` and ``bias`` None they are :func:`propagate`'s.
+    (``(T, 3, 3)``, body frame), optionally each particle's yaw-rate bias (:class:`YawBias`, needs the
+    scan intervals ``dt``) and a wide mode for a share of the particles (:class:`WideMode`: ``noise`` for them,
+    ``cov`` for the others). Draws come from ``rng`` in a fixed order, so that the numpy and torch filters
+    draw the same; with ``cov``, ``bias`` and ``wide`` None they are :func:`propagate`'s.
     """
 
     def __init__(self, noise: MotionNoise, n_particles: int, rng: np.random.Generator, cov: F64 | None = None,
-                 dt: F64 | None = None, bias: YawBias | None = None) -> None:
+                 dt: F64 | None = None, bias: YawBias | None = None, wide: WideMode | None = None) -> None:
         if bias is not None and dt is None:
             raise ValueError("the yaw-rate bias state needs the scan intervals dt")
-        self.noise, self.rng, self.model = noise, rng, bias
+        if wide is not None and cov is None:
+            raise ValueError("the wide mode is GMapping's noise beside the odometry's covariance: it needs cov")
+        self.noise, self.rng, self.model, self.wide = noise, rng, bias, wide
         self.dt = None if dt is None else np.asarray(dt, dtype=np.float64)
         self.chol: F64 | None = None
         if cov is not None:
@@ -111,6 +133,8 @@ class Proposal:
         if bias is not None and self.bias is not None and bias.share < 1.0:
             self.carries = np.arange(n_particles) < round(bias.share * n_particles)
             self.bias = np.where(self.carries, self.bias, 0.0)
+        #: which particles are in the wide mode (:class:`WideMode`); resampled with them
+        self.wide_mode: npt.NDArray[np.bool_] | None = None if wide is None else rng.random(n_particles) < wide.share
         self._i = 0
 
     def _step(self) -> tuple[int, float]:
@@ -139,11 +163,19 @@ class Proposal:
             v = self.rng.standard_normal((n, 3)) * np.array([s_xy, s_xy, s_yaw])
         else:
             v = self.rng.standard_normal((n, 3)) @ self.chol[min(i, len(self.chol) - 1)].T
+        if self.wide is not None and self.wide_mode is not None:
+            redraw = self.rng.random(n) < self.wide.switch
+            self.wide_mode = np.where(redraw, self.rng.random(n) < self.wide.share, self.wide_mode)
+            s_xy, s_yaw = self.noise.std(u)
+            vw = self.rng.standard_normal((n, 3)) * np.array([s_xy, s_xy, s_yaw])
+            v = np.where(self.wide_mode[:, None], vw, v)
         return self.corrected(u, n, dt) + v
 
     def prior(self, u: npt.ArrayLike, n: int) -> tuple[F64, F64]:
         """The next step's bias-corrected increments ``(n, 3)`` and the diagonal of their variance ``(3,)``
         (for the Laplace proposal of :mod:`pose_refinement`, which takes the prior as diagonal)."""
+        if self.wide is not None:
+            raise ValueError("the Laplace proposal takes one prior for every particle: no wide mode (WideMode)")
         i, dt = self._step()
         self._walk(dt)
         if self.chol is None:
@@ -160,6 +192,12 @@ class Proposal:
             self.bias = self.bias[np.asarray(indices)]
         if self.carries is not None:
             self.carries = self.carries[np.asarray(indices)]
+        if self.wide_mode is not None:
+            self.wide_mode = self.wide_mode[np.asarray(indices)]
+
+    def wide_share(self, w: F64) -> float:
+        """The weight on the wide mode's particles (nan without it)."""
+        return float("nan") if self.wide_mode is None else float(np.dot(w, self.wide_mode))
 
     def bias_mean(self, w: F64) -> float:
         """The weighted mean bias (nan without the bias state)."""
@@ -817,6 +855,8 @@ class FilterHistory:
     parents: list[npt.NDArray[np.int64]] = field(default_factory=list)
     #: weighted mean of the particles' yaw-rate bias per scan (nan without the bias state)
     yaw_bias: list[float] = field(default_factory=list)
+    #: the weight on the wide mode's particles per scan (:class:`WideMode`; nan without it)
+    wide_share: list[float] = field(default_factory=list)
     #: the weighted mean pose per scan (:func:`weighted_mean_pose`, before resampling)
     mean_pose: list[F64] = field(default_factory=list)
     #: at each resampling, the mean of the resampled poses minus the weighted mean before it (dx, dy, dyaw):
@@ -934,6 +974,7 @@ class RBPF:
         self.history.particles.append(self.poses.copy())
         self.history.parents.append(self._parents)
         self.history.yaw_bias.append(self.proposal.bias_mean(w))
+        self.history.wide_share.append(self.proposal.wide_share(w))
         self.history.mean_pose.append(weighted_mean_pose(self.poses, w))
         self.history.final_weights = w
         if observer is not None:

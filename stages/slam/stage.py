@@ -47,7 +47,7 @@ from stages.slam.methods import (
     run_method,
 )
 from stages.slam.pose_refinement import PoseRefinement
-from stages.slam.rbpf import MotionNoise, YawBias
+from stages.slam.rbpf import MotionNoise, WideMode, YawBias
 from stages.slam.submaps import SubmapModel
 
 F64 = npt.NDArray[np.floating[Any]]
@@ -191,6 +191,12 @@ class SlamParams(StageParams):
     yaw_bias_share: float = Field(1.0, gt=0, le=1, description="share of the particles that carry the yaw-rate bias; "
                                   "the others keep none, so the weights choose between a drifting and a good "
                                   "odometry (1: all)")
+    proposal_wide_share: float = Field(0.0, ge=0, lt=1, description="with the odometry_covariance proposal: the "
+                                       "stationary share of the particles drawn with GMapping's wide fitted noise "
+                                       "(motion_*) instead, resampled with their mode, for an odometry that drifts "
+                                       "more than its covariance says (0: off; stages/slam/README.md, stop 54)")
+    proposal_wide_switch: float = Field(0.01, ge=0, le=1, description="per-scan probability that a particle's "
+                                        "mode (wide or the odometry's) is drawn afresh from proposal_wide_share")
     resampling: Literal["systematic", "stratified", "multinomial"] = Field(
         "systematic", description="resampler (systematic = low variance)")
     resample_threshold: float = Field(0.5, gt=0, le=1, description="resample when N_eff < this * N_p (eq. 31)")
@@ -317,6 +323,7 @@ class SlamParams(StageParams):
                               self.motion_rot_per_trans, self.motion_trans_per_rot),
             proposal=self.proposal, proposal_scale=self.proposal_scale,
             yaw_bias=YawBias(self.yaw_bias_sigma0, self.yaw_bias_walk, self.yaw_bias_share) if self.yaw_bias else None,
+            wide=WideMode(self.proposal_wide_share, self.proposal_wide_switch) if self.proposal_wide_share else None,
             resampling=self.resampling, resample_threshold=self.resample_threshold,
             resample_keep_mean=self.resample_keep_mean, map_update=self.map_update,
             laplace_iterations=self.laplace_iterations, map_form=self.map_form, dtype=self.dtype,
@@ -395,6 +402,8 @@ class SlamStage(Stage):
                     "map_form": res.form,
                     **({"yaw_bias_final_deg_s": round(float(np.degrees(res.yaw_bias[-1])), 5)}
                        if res.yaw_bias is not None and len(res.yaw_bias) else {}),
+                    **({"wide_share_mean": round(float(np.mean(res.wide_share)), 4)}
+                       if res.wide_share is not None and len(res.wide_share) else {}),
                     **({"device": res.device} if m in HILBERT_METHODS else {}),
                     **({"submaps_opened": res.submaps_opened} if res.submaps_opened else {}),
                     **({"submap_revisits": res.submap_revisits} if res.submap_revisits else {}),

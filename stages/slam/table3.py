@@ -297,6 +297,8 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                         row["fusion_filter_sigma_deg"] = res.fusion_filter_sigma_deg
                 if res.likelihood_exponent is not None:  # the exponent the Hilbert filter ran with
                     row["likelihood_exponent"] = res.likelihood_exponent
+                if res.wide_share is not None and len(res.wide_share):  # the weight on the wide mode
+                    row["wide_share_mean"] = float(np.mean(res.wide_share))
                 if anchored:  # beside the Table III protocol: no alignment (every filter starts at the anchor)
                     row["pos_rmse_anchored_m"], row["yaw_rmse_anchored_deg"] = anchored_errors(
                         t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])

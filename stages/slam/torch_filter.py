@@ -149,6 +149,7 @@ class TorchRBPF:
         self._particles.append(self.poses.clone())
         self._parent_log.append(self._parents)
         h.yaw_bias.append(self.proposal.bias_mean(w.cpu().numpy()) if self.proposal.bias is not None else float("nan"))
+        h.wide_share.append(self.proposal.wide_share(w.cpu().numpy()) if self.proposal.wide else float("nan"))
         if observer is not None:
             observer(self, best)
         resampled = n_eff < self.resample_threshold * self.n_particles
@@ -162,7 +163,7 @@ class TorchRBPF:
                 d[2] = wrap_angle_t(d[2])
                 self.poses = self.poses + d
             self.maps.select(idx)
-            if self.proposal.bias is not None:
+            if self.proposal.bias is not None or self.proposal.wide_mode is not None:
                 self.proposal.select(idx.cpu().numpy())
             self.logw = torch.full_like(self.logw, -float(np.log(self.n_particles)))
             self._parents = idx
