@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -104,16 +106,23 @@ def test_run_method_refuses_the_odometry_covariance_without_it() -> None:
                                                                           n_particles=2, workers=0), 0)
 
 
+def _drifting_run(bias: float, yaw_std: float, n: int = 600) -> tuple[Any, list[Any], hm.HilbertBasis,
+                                                                     OdometryMotion]:
+    """A synthetic run whose odometry yaw drifts by ``bias`` rad/s (scans at 10 Hz) with per-scan yaw noise
+    ``yaw_std``, which its increment covariance states; its scans, a basis over it and that covariance."""
+    run = make_run(n, np.random.default_rng(1), beams_per_scan=30, outlier_fraction=0.0, odo_trans_noise=0.005,
+                   odo_yaw_noise=yaw_std, odo_yaw_bias=bias * 0.1)
+    scans = [sample_beams(p, np.zeros(2), 1.0, 5.0) for p in run.scans]
+    half, centre = domain_from_trajectory(run.odometry[:, :2], 5.0)
+    motion = OdometryMotion(np.tile(np.diag([0.005, 0.005, yaw_std]) ** 2, (n, 1, 1)), np.full(n, 0.1))
+    return run, scans, hm.make_basis(half, centre, 256), motion
+
+
 def test_bias_state_converges_to_a_constant_gyro_bias_and_bounds_the_heading_error() -> None:
     """Odometry whose yaw drifts linearly (0.01 rad/s = 0.57 deg/s over 60 s): the particles' bias converges to
     it and the filter's heading error stays bounded while the odometry's grows to ~27 deg."""
-    n, bias = 600, 0.01
-    run = make_run(n, np.random.default_rng(1), beams_per_scan=30, outlier_fraction=0.0, odo_trans_noise=0.005,
-                   odo_yaw_noise=0.002, odo_yaw_bias=bias * 0.1)
-    scans = [sample_beams(p, np.zeros(2), 1.0, 5.0) for p in run.scans]
-    half, centre = domain_from_trajectory(run.odometry[:, :2], 5.0)
-    basis = hm.make_basis(half, centre, 256)
-    motion = OdometryMotion(np.tile(np.diag([0.005, 0.005, 0.002]) ** 2, (n, 1, 1)), np.full(n, 0.1))
+    bias = 0.01
+    run, scans, basis, motion = _drifting_run(bias, 0.002)
     # a walk well above the datasheet's keeps the 50 particles' biases diverse (stages/slam/README.md)
     cfg = SlamConfig(n_particles=50, workers=0, proposal="odometry_covariance", yaw_bias=YawBias(0.02, 3e-4))
     r = run_method("fastslam_grid", run.odometry, scans, basis, cfg, seed=0, motion=motion)
@@ -129,13 +138,7 @@ def test_bias_state_converges_to_a_constant_gyro_bias_and_bounds_the_heading_err
 def test_the_wide_mode_follows_an_odometry_that_drifts_beyond_its_covariance() -> None:
     """An odometry whose yaw drifts 0.57 deg/s while its covariance claims 0.017 deg per scan: the narrow proposal
     cannot leave it, the wide mode's particles can, and the weights move onto them."""
-    n, bias = 600, 0.01
-    run = make_run(n, np.random.default_rng(1), beams_per_scan=30, outlier_fraction=0.0, odo_trans_noise=0.005,
-                   odo_yaw_noise=0.0003, odo_yaw_bias=bias * 0.1)
-    scans = [sample_beams(p, np.zeros(2), 1.0, 5.0) for p in run.scans]
-    half, centre = domain_from_trajectory(run.odometry[:, :2], 5.0)
-    basis = hm.make_basis(half, centre, 256)
-    motion = OdometryMotion(np.tile(np.diag([0.005, 0.005, 0.0003]) ** 2, (n, 1, 1)), np.full(n, 0.1))
+    run, scans, basis, motion = _drifting_run(0.01, 0.0003)
     final = {}
     for wide in (None, WideMode(share=0.2, switch=0.01)):
         cfg = SlamConfig(n_particles=50, workers=0, proposal="odometry_covariance", wide=wide,
