@@ -11,6 +11,7 @@ finishes and skips the ones already there: stop it at any point and run the same
     python -m stages.slam.table3 --table a.jsonl b.jsonl      # rows of several sessions in one table
     python -m stages.slam.table3 --table table3.jsonl --figure table3.png   # and the figure (one panel a sequence)
     python -m stages.slam.table3 --table table3.jsonl --paper               # the twins beside the paper's Table III
+    python -m stages.slam.table3 --table table3.jsonl --targets             # issue 27's targets per sequence
 
 Errors are position RMSE [m] / yaw RMSE [deg] after an SE(2) alignment (the evaluate stage's
 ``evaluate_trajectory``), two ways, both in every row: on the whole trajectory (``pos_rmse_whole_m``,
@@ -498,6 +499,53 @@ def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = (), anchored:
     return "\n".join(lines)
 
 
+#: issue 27's targets: an odometry whose whole-trajectory yaw RMSE is below this (deg) must not be made worse
+GOOD_ODOMETRY_DEG = 5.0
+#: and on a drifting sequence (its name ends so) the method's yaw RMSE must be this fraction of the odometry's or less
+DRIFT_FACTOR = 0.7
+
+
+def targets(rows: Sequence[dict[str, Any]], method: str = "rich_slam, fused",
+            against: str = "fastslam_grid, fused") -> tuple[str, dict[str, tuple[int, int]]]:
+    """Issue 27's targets per sequence, whole-trajectory alignment, a markdown table and the counts
+    ``{target: (met, of)}``: **no worse** than the odometry in yaw and position where its yaw RMSE is below
+    :data:`GOOD_ODOMETRY_DEG`, within the spread over seeds (the cell's mean minus half its range at most the
+    odometry's); on the drifting sequences (``*_drift``) the mean yaw **30 % below** the odometry's
+    (:data:`DRIFT_FACTOR`) and **below** ``against``'s mean yaw. A sequence without a ``method`` or odometry row
+    is left out; one without an ``against`` row counts that target as not met (``no row``)."""
+    d = by_sequence(rows, alignment="whole")
+    counts = {"no worse": [0, 0], "30 % below": [0, 0], f"below {against}": [0, 0], "both drifting": [0, 0]}
+    lines = [f"| sequence | odometry | {method} | {against} | no worse (odometry < {GOOD_ODOMETRY_DEG:g}°) | "
+             "30 % below (drifting) | below the other (drifting) |", "|---|---|---|---|---|---|---|"]
+    mark = {True: "✓", False: "✗", None: ""}
+    for seq, cells in d.items():
+        odo, mine = cells.get("odometry"), cells.get(method)
+        if not odo or not mine:
+            continue
+        v = np.asarray(mine, np.float64).reshape(-1, 2)
+        mean, half = v.mean(0), (v.max(0) - v.min(0)) / 2
+        o = np.asarray(odo[0], np.float64)
+        other = cells.get(against)
+        no_worse = bool(np.all(mean - half <= o + 1e-9)) if o[1] < GOOD_ODOMETRY_DEG else None
+        drifting = seq.endswith("_drift")
+        below30 = bool(mean[1] <= DRIFT_FACTOR * o[1]) if drifting else None
+        below_other = (bool(other) and bool(mean[1] < np.mean(np.asarray(other)[:, 1]))) if drifting else None
+        for name, ok in (("no worse", no_worse), ("30 % below", below30), (f"below {against}", below_other)):
+            if ok is not None:
+                counts[name][0] += ok
+                counts[name][1] += 1
+        if drifting:
+            counts["both drifting"][0] += bool(below30 and below_other)
+            counts["both drifting"][1] += 1
+        gain = f" ({100 * (mean[1] / o[1] - 1):+.0f} %)" if drifting and o[1] > 0 else ""
+        lines.append(f"| {seq} | {cell(odo, 'odometry')} | {cell(mine, method)} | "
+                     f"{cell(other, against) if other else 'no row'} | {mark[no_worse]} | {mark[below30]}{gain} | "
+                     f"{mark[below_other]} |")
+    totals = {k: (v[0], v[1]) for k, v in counts.items()}
+    lines.append("\n" + "; ".join(f"{k}: {m} of {n}" for k, (m, n) in totals.items()))
+    return "\n".join(lines), totals
+
+
 def paper_table(rows: Sequence[dict[str, Any]]) -> str:
     """Markdown, a line per sequence that Table III has (the ColoRadar twins): our methods' cells under the
     paper's protocol, then the paper's rows for the same sequence (``stages.evaluate.rich_slam_paper``). When
@@ -563,6 +611,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--nees", type=Path, help="rows of `python -m stages.odometry.nees ... --windows --json`")
     ap.add_argument("--paper", action="store_true", help="with --table: also the ColoRadar twins beside the paper's "
                     "Table III (a line per twin; in the figure, a mark at the paper's value of each method)")
+    ap.add_argument("--targets", metavar="METHOD;OTHER", nargs="?", const="rich_slam, fused;fastslam_grid, fused",
+                    help="with --table: issue 27's targets per sequence for METHOD against the odometry and OTHER "
+                    "(default 'rich_slam, fused;fastslam_grid, fused'), whole-trajectory alignment")
     ap.add_argument("--anchored", action="store_true", help="with --table: also the errors without alignment "
                     "(rows of runs whose odometry is anchored at the ground truth)")
     ap.add_argument("--alignment", choices=("whole", "paper"), default="whole", help="with --figure: the "
@@ -596,6 +647,14 @@ def main(argv: list[str] | None = None) -> int:
                   else "(no row has errors without alignment)")
         if a.paper:
             print("\n" + (paper_table(rows) or "(no sequence of the paper's Table III in these rows)"))
+        if a.targets:
+            method, _, other = a.targets.partition(";")
+            if not has_whole or method.strip() not in {r["method"] for r in rows}:
+                print(f"error: --targets: no row of {method.strip()!r} with the whole-trajectory errors",
+                      file=sys.stderr)
+                return 2
+            print(f"\nIssue 27's targets, {method.strip()} (whole-trajectory alignment; mean ± half range over "
+                  f"seeds):\n\n{targets(rows, method.strip(), other.strip() or 'fastslam_grid, fused')[0]}")
         if a.figure:
             from stages.evaluate.figures import plot_table3
 
