@@ -194,7 +194,8 @@ class SlamParams(StageParams):
     proposal_wide_share: float = Field(0.0, ge=0, lt=1, description="with the odometry_covariance proposal: the "
                                        "stationary share of the particles drawn with GMapping's wide fitted noise "
                                        "(motion_*) instead, resampled with their mode, for an odometry that drifts "
-                                       "more than its covariance says (0: off; stages/slam/README.md, stop 54)")
+                                       "more than its covariance says (0: off; worse on the calibration runs, "
+                                       "stages/slam/README.md stop 54)")
     proposal_wide_switch: float = Field(0.01, ge=0, le=1, description="per-scan probability that a particle's "
                                         "mode (wide or the odometry's) is drawn afresh from proposal_wide_share")
     resampling: Literal["systematic", "stratified", "multinomial"] = Field(
