@@ -8,9 +8,11 @@ import pytest
 from stages.slam.heading_fusion import recompose
 from stages.slam.map_consistency import (
     MapConsistency,
+    block_sums,
     common_support_scores,
     consistency_parts,
     consistent_scale,
+    difference_evidence,
     heading_ramp,
     map_consistency,
     scaled_positions,
@@ -151,6 +153,8 @@ def test_the_scale_that_undoes_a_drift_is_chosen() -> None:
     assert consistent_scale(odometry, exact, pts, scan, t).alpha == 1.0
     choice = consistent_scale(odometry, 2 * exact, pts, scan, t, MapConsistency(alpha_max=1.5))
     assert choice.alpha == 0.5 and choice.scores.argmin() == 4
+    assert np.array_equal(choice.alphas, MapConsistency(alpha_max=1.5).scales())  # one grid for every caller
+    assert np.allclose(MapConsistency(alpha_max=1.0, alpha_step=0.25).scales(), [0, 0.25, 0.5, 0.75, 1.0])
     # a correction that makes it worse is dropped: the odometry stays
     assert consistent_scale(odometry, -exact, pts, scan, t).alpha == 0.0
 
@@ -158,7 +162,7 @@ def test_the_scale_that_undoes_a_drift_is_chosen() -> None:
 def test_off_and_empty() -> None:
     t, truth, pts, scan = _room_run(2, n=50)
     off = consistent_scale(truth, np.ones(len(t)), pts, scan, t, MapConsistency(alpha_max=0))
-    assert off.alpha == 1.0 and off.scores.size == 1
+    assert off.alpha == 1.0 and off.scores.size == 1 and MapConsistency(alpha_max=0).scales().size == 0
     assert map_consistency(truth, np.zeros((0, 2)), np.zeros(0, np.int64), t) == 0.0
     # no endpoints: every scale scores the same, and the correction stays as the fusion gives it
     for criterion in ("matched", "capped", "common"):
@@ -184,13 +188,15 @@ def test_the_fused_estimate_keeps_the_odometry_where_the_filter_smears_the_map()
     model = HeadingFusion(bias_sigma0=0.01, information_ref=0)
     on = MapConsistency(alpha_max=1.0)
     wander = recompose(truth, np.radians(6) * np.sin(2 * np.pi * t / t[-1]))  # the filter, off by up to 6 deg
-    fused, _, alpha = fused_estimate(truth, wander, motion, model, scans, on)
-    assert alpha == 0.0
+    fused, _, alpha, evidence = fused_estimate(truth, wander, motion, model, scans, on)
+    assert alpha == 0.0 and np.isnan(evidence)  # no guard: no evidence computed
     np.testing.assert_allclose(fused, recompose(truth, np.zeros(len(t))), atol=1e-12)
     odometry = _drifted(truth, t, 4e-3)
-    fused, _, alpha = fused_estimate(odometry, truth, motion, model, scans, on)
+    fused, _, alpha, _ = fused_estimate(odometry, truth, motion, model, scans, on)
     assert alpha == 1.0
-    plain, _, one = fused_estimate(odometry, truth, motion, model)
+    guarded = fused_estimate(odometry, truth, motion, model, scans, MapConsistency(alpha_max=1.0, guard=2.0))
+    assert guarded.alpha == 1.0 and guarded.evidence > 2.0 and np.array_equal(guarded.poses, fused)
+    plain, _, one, _ = fused_estimate(odometry, truth, motion, model)
     assert one == 1.0 and np.array_equal(fused, plain)
 
 
@@ -205,3 +211,49 @@ def test_the_slam_parameters_carry_the_criterion() -> None:
     with pytest.raises(ValidationError, match="fusion_alpha_criterion"):
         SlamParams(fusion_alpha_criterion="kernel")
     assert SlamParams(fusion_alpha_criterion="common").config().consistency.criterion == "common"
+
+
+def test_the_block_sums_add_up_to_the_score_and_its_matched_part() -> None:
+    t, truth, pts, scan = _room_run(3)
+    odometry = _drifted(truth, t, 2e-3)
+    p = MapConsistency(guard_block=4.0)
+    parts = consistency_parts(odometry, pts, scan, t, p)
+    s, n = block_sums(odometry, pts, scan, t, p)
+    assert len(s) == int(np.floor((t[-1] - t[0]) / 4.0)) + 1 and np.all(n > 0)
+    assert s.sum() / n.sum() == pytest.approx(parts.score, rel=1e-12)
+    sm, nm = block_sums(odometry, pts, scan, t, p, matched_only=True)
+    assert sm.sum() / nm.sum() == pytest.approx(parts.matched_ms, rel=1e-12)
+    assert nm.sum() / n.sum() == pytest.approx(parts.matched, rel=1e-12) and np.all(nm <= n)
+
+
+def test_the_difference_evidence_matches_a_jackknife_over_blocks() -> None:
+    """The linearised standard error of a difference of two ratio scores against the delete-one-block jackknife
+    (an independent estimate of the same variance; they agree to first order)."""
+    rng = np.random.default_rng(5)
+    n0, n1 = rng.integers(20, 60, 40).astype(float), rng.integers(20, 60, 40).astype(float)
+    s0 = n0 * 0.05 * (1 + 0.3 * rng.standard_normal(40))
+    s1 = s0 * n1 / n0 * 0.93 * (1 + 0.1 * rng.standard_normal(40))
+    ev = difference_evidence((s0, n0), (s1, n1))
+    gain = s0.sum() / n0.sum() - s1.sum() / n1.sum()
+    keep = ~np.eye(40, dtype=bool)
+    jack = np.array([(s0[k].sum() / n0[k].sum()) - (s1[k].sum() / n1[k].sum()) for k in keep])
+    se_jack = np.sqrt(39 / 40 * np.sum((jack - jack.mean()) ** 2))
+    assert gain > 0 and ev == pytest.approx(gain / se_jack, rel=0.05)
+    assert difference_evidence((s1, n1), (s0, n0)) == 0.0  # a loss is no evidence
+    assert np.isnan(difference_evidence((s0, 0 * n0), (s1, n1)))
+
+
+def test_the_guard_keeps_a_clear_correction_and_drops_one_the_noise_chose() -> None:
+    t, truth, pts, scan = _room_run(1)
+    odometry = _drifted(truth, t, 4e-3)  # 9 deg off at the end: the correction is plain
+    clear = consistent_scale(odometry, -4e-3 * t, pts, scan, t, MapConsistency(guard=2.0))
+    assert clear.alpha == 1.0 and clear.evidence > 2.0
+    # the odometry right and a correction of noise: the unguarded search takes a scale by chance, the guard not
+    noise = np.cumsum(np.random.default_rng(0).normal(0, 2e-4, len(t)))
+    free = consistent_scale(truth, noise, pts, scan, t, MapConsistency())
+    guarded = consistent_scale(truth, noise, pts, scan, t, MapConsistency(guard=2.0))
+    assert free.alpha > 0 and np.isnan(free.evidence)
+    assert guarded.alpha == 0.0 and guarded.evidence <= 2.0
+    assert np.array_equal(free.scores, guarded.scores)
+    with pytest.raises(ValueError, match="criterion 'common'"):
+        MapConsistency(guard=2.0, criterion="common")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -240,7 +241,15 @@ def test_consistency_sweep_perturbs_the_odometry_and_names_bad_input(tmp_path: P
     assert steps[2]["yaw_rmse_whole_deg"] < steps[1]["yaw_rmse_whole_deg"] < steps[0]["yaw_rmse_whole_deg"]
     assert 0 < steps[0]["common_share"] <= 1 and all(0 < r["common_ms"] < 0.25 for r in steps)
     assert consistency_sweep.summary(steps)["alpha_by_truth"] == 1.0
-    assert "seq_s seed 3: alpha by score" in capsys.readouterr().out
+    assert re.search(r"seq_s seed 3 \(rich_slam__smoothed_seed3_\w+\.npz\): alpha by score", capsys.readouterr().out)
+    # a second file of the same seed (another run's parameters) gets a table of its own, not mixed with the first
+    save_trajectory(tmp_path / "kept", "seq_s", "rich_slam, smoothed", 3, '{"n_particles": 7}', scan_ns,
+                    gt.astype(np.float64), (t_ns, gt[:, :2].astype(np.float64), gt[:, 2].astype(np.float64)),
+                    "smoothed")
+    assert consistency_sweep.main([args[0], "--kept", str(tmp_path / "kept"), "--alphas", "0,1",
+                                   "--set", "workers=0", "--out", str(prof)]) == 0
+    assert len(re.findall(r"seq_s seed 3 \(.+\.npz\): alpha by score", capsys.readouterr().out)) == 2
+    assert len(prof.read_text().splitlines()) == 4
     assert consistency_sweep.main([args[0], "--kept", str(tmp_path / "none"), "--out", str(prof)]) == 2
     assert "no smoothed rich_slam trajectory kept" in capsys.readouterr().err
 
@@ -358,6 +367,16 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest
     off = [*base5, "--set", "fusion_alpha_max=0", "--out"]  # off: the fusion's correction as it is, no scale recorded
     assert table3.main([*off, str(tmp_path / "t3_off.jsonl"), "--from-kept", str(keep)]) == 0
     assert "fusion_alpha" not in json.loads((tmp_path / "t3_off.jsonl").read_text().splitlines()[0])
+    # the guard (stop 55): the same evidence both ways, recorded; nothing matched here, so no evidence for any
+    # scale and the odometry stays (alpha 0) where the unguarded search keeps the correction as it is (1)
+    guard = [*base5, "--set", "fusion_alpha_guard=2", "--out"]
+    assert table3.main([*guard, str(tmp_path / "t3_g_kept.jsonl"), "--from-kept", str(keep)]) == 0
+    assert table3.main([*guard, str(tmp_path / "t3_g_run.jsonl"), "--estimates", "fused"]) == 0
+    g_kept, g_run = (next(r for r in map(json.loads, (tmp_path / f).read_text().splitlines())
+                          if r["method"] == "fastslam_grid, fused") for f in ("t3_g_kept.jsonl", "t3_g_run.jsonl"))
+    assert g_kept["fusion_alpha"] == g_run["fusion_alpha"] == 0.0
+    assert g_kept["fusion_alpha_evidence"] == g_run["fusion_alpha_evidence"] == 0.0
+    assert g_kept["yaw_rmse_whole_deg"] == pytest.approx(odo2["yaw_rmse_whole_deg"], rel=1e-9)
     for k in ("yaw_rmse_whole_deg", "pos_rmse_whole_m"):
         assert kept0[k] == pytest.approx(run0[k], rel=1e-9, abs=1e-12)
     # the correction's scale chosen by the scans' consistency (fusion_alpha_max): the same both ways, recorded

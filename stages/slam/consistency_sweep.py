@@ -50,8 +50,8 @@ F64 = npt.NDArray[np.floating[Any]]
 
 SCALES = (0.94, 0.97, 1.0, 1.03, 1.06)
 RAMPS = (-0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2)
-#: scales of the fused correction (``--kept``): the default search's 0..1.5 in steps of 0.125
-ALPHAS = tuple(0.125 * i for i in range(13))
+#: scales of the fused correction (``--kept``): the default search's grid (0..1.5 in steps of 0.125)
+ALPHAS = tuple(float(a) for a in MapConsistency().scales())
 
 
 def sweep_run(run_dir: Path, params: SlamParams, scales: Sequence[float] = SCALES,
@@ -111,6 +111,7 @@ def profile_kept(run_dir: Path, keep: Path, params: SlamParams, alphas: Sequence
         raise ValueError(f"{run_dir}: no scan has endpoints; the score has nothing to compare")
     fusion_keys = {k: v for k, v in params.model_dump().items() if k.startswith("fusion_")}
     rows: list[dict[str, Any]] = []
+    base_scores: dict[MapConsistency, float] = {}  # the odometry's score, once per score setting
     for path, kept, base in kept_runs:
         if not np.array_equal(t_ns, kept["t_ns"]):
             raise ValueError(f"{path}: its scan stamps are not those of {run_dir}/odometry")
@@ -118,7 +119,9 @@ def profile_kept(run_dir: Path, keep: Path, params: SlamParams, alphas: Sequence
         correction = fuse_heading(t, odo[:, 2], kept["pose"][:, 2], motion.cov[:, 2, 2], model).correction
         estimates = [recompose(odo, a * correction) for a in alphas]
         truth: Truth = (kept["truth_t_ns"], kept["truth_xy"], kept["truth_yaw"])
-        base_score = consistency_parts(odo, points, scan, t, consistency).score
+        if consistency not in base_scores:
+            base_scores[consistency] = consistency_parts(odo, points, scan, t, consistency).score
+        base_score = base_scores[consistency]
         head = {"seq": run_dir.name, "method": f"{method}, fused", "seed": int(kept["seed"]), "kept": path.name}
         rows += _scored("alpha", alphas, estimates, points, scan, t, consistency, base_score, t_ns, truth, head)
     return rows
@@ -186,8 +189,9 @@ def main(argv: list[str] | None = None) -> int:
             results = []
             for run in a.runs:
                 rows = profile_kept(run, a.kept, params, alphas, a.method)
-                results += [(f"{run.name} seed {seed}", [r for r in rows if r["seed"] == seed])
-                            for seed in sorted({r["seed"] for r in rows})]
+                files = sorted({(r["seed"], r["kept"]) for r in rows})  # one table per kept file
+                results += [(f"{run.name} seed {seed} ({name})", [r for r in rows if r["kept"] == name])
+                            for seed, name in files]
         else:
             results = [(run.name, sweep_run(run, params, scales, ramps)) for run in a.runs]
     except (OSError, ValueError, KeyError) as e:

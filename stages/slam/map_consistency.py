@@ -31,7 +31,7 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.spatial import cKDTree
 
 from stages.slam.heading_fusion import recompose
@@ -64,6 +64,24 @@ class MapConsistency(BaseModel):
         "stages/slam/README.md, stop 52), or 'common', the same for the one set of points matched at every scale "
         "searched (:func:`common_support_scores`, stop 53)")
 
+    guard: float = Field(0.0, ge=0, description="keep the odometry (scale 0) unless the chosen scale's criterion "
+                         "is below the odometry's by more than this many standard errors of the difference, taken "
+                         "over time blocks of guard_block s (:func:`difference_evidence`; 0: off)")
+    guard_block: float = Field(10.0, gt=0, description="time block of the guard's standard error, s")
+
+    @model_validator(mode="after")
+    def _guard_criterion(self) -> MapConsistency:
+        if self.guard > 0 and self.criterion == "common":
+            raise ValueError("the guard (slam.fusion_alpha_guard) compares the odometry's points with the chosen "
+                             "scale's; criterion 'common' scores one shared set: use 'capped' or 'matched'")
+        return self
+
+    def scales(self) -> F64:
+        """The scales searched, ``{0, alpha_step, ..., alpha_max}`` (empty when ``alpha_max`` is 0: off)."""
+        if self.alpha_max <= 0:
+            return np.zeros(0)
+        return np.arange(int(np.floor(self.alpha_max / self.alpha_step + 1e-9)) + 1) * self.alpha_step
+
 
 class ScaleChoice(NamedTuple):
     """:func:`consistent_scale`'s result."""
@@ -71,6 +89,7 @@ class ScaleChoice(NamedTuple):
     alpha: float  # the chosen scale of the correction
     alphas: F64  # the grid searched
     scores: F64  # the criterion at each (nan: no point matched)
+    evidence: float = float("nan")  # the best scale's gain over the odometry in standard errors (guard on only)
 
 
 def stacked_endpoints(scans: Sequence[Any]) -> tuple[F64, I64]:
@@ -120,6 +139,45 @@ def nearest_far(world: F64, t_points: F64, params: MapConsistency | None = None)
     found = np.isfinite(d)
     far = found & (np.abs(t_points[np.where(found, j, 0)] - t_points[:, None]) >= p.separation)
     return np.where(far, d, p.truncation).min(axis=1), far.any(axis=1)
+
+
+def block_sums(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.ArrayLike, t_s: npt.ArrayLike,
+               params: MapConsistency | None = None, matched_only: bool = False) -> tuple[F64, F64]:
+    """Per time block of ``params.guard_block`` s from the first stamp: the sum of the thinned points' squared
+    capped distances and their count (``matched_only``: of the points with a counterpart within the cap), so that
+    ``S.sum() / N.sum()`` is :func:`consistency_parts`' ``score`` (``matched_ms``)."""
+    p = params or MapConsistency()
+    t = np.asarray(t_s, np.float64)
+    scan = np.asarray(scan, np.int64)
+    _check_stamps(poses, t)
+    n_blocks = int(np.floor((t[-1] - t[0]) / p.guard_block)) + 1 if len(t) else 0
+    w = world_points(poses, points, scan)
+    tp = t[scan]
+    keep = thinned(w, tp, p)
+    nearest, matched = nearest_far(w[keep], tp[keep], p)
+    use = matched if matched_only else np.ones(len(keep), bool)
+    block = np.floor((tp[keep][use] - t[0]) / p.guard_block).astype(np.int64)
+    return (np.bincount(block, nearest[use] ** 2, n_blocks).astype(np.float64),
+            np.bincount(block, None, n_blocks).astype(np.float64))
+
+
+def difference_evidence(base: tuple[F64, F64], other: tuple[F64, F64]) -> float:
+    """How many standard errors ``other``'s ratio score ``S.sum() / N.sum()`` is below ``base``'s, from per-block
+    sums ``(S, N)`` (:func:`block_sums`): the difference over the square root of its linearised variance across
+    blocks, ``B / (B - 1) * sum_b r_b^2`` with ``r_b`` each block's residual ``(S_b - score N_b) / N`` of ``base``
+    minus that of ``other`` (a ratio estimator's delta method, blocks as the independent units). ``inf`` for a
+    gain without spread, 0 for none, nan when either side has no point."""
+    (s0, n0), (s1, n1) = base, other
+    if n0.sum() == 0 or n1.sum() == 0:
+        return float("nan")
+    q0, q1 = s0.sum() / n0.sum(), s1.sum() / n1.sum()
+    r = (s0 - q0 * n0) / n0.sum() - (s1 - q1 * n1) / n1.sum()
+    used = int(np.count_nonzero((n0 + n1) > 0))
+    gain = q0 - q1
+    if gain <= 0:
+        return 0.0
+    var = used / (used - 1) * float(np.sum(r ** 2)) if used > 1 else 0.0
+    return float(gain / np.sqrt(var)) if var > 0 else float("inf")
 
 
 def consistency_parts(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.ArrayLike, t_s: npt.ArrayLike,
@@ -205,11 +263,13 @@ def consistent_scale(odometry: npt.ArrayLike, correction: npt.ArrayLike, points:
     score, or the matched points' mean square distance; :func:`common_support_scores`: that of the points matched
     at every scale; as ``params.criterion`` says); of equal scores the one
     nearest 1 (the correction as the fusion gives it: scans without endpoints, or without any point matched, say
-    nothing). ``alpha_max = 0``: 1, nothing scored."""
+    nothing). With ``params.guard > 0`` the chosen scale stands only if its criterion is below the odometry's
+    (scale 0) by more than ``guard`` standard errors over time blocks (:func:`difference_evidence`), else the
+    odometry stays; ``evidence`` records that many. ``alpha_max = 0``: 1, nothing scored."""
     p = params or MapConsistency()
     if p.alpha_max <= 0:
         return ScaleChoice(1.0, np.ones(1), np.zeros(1))
-    alphas = np.arange(int(np.floor(p.alpha_max / p.alpha_step + 1e-9)) + 1) * p.alpha_step
+    alphas = p.scales()
     c = np.asarray(correction, np.float64)
     trajectories = [recompose(odometry, a * c) for a in alphas]
     if p.criterion == "common":
@@ -219,4 +279,13 @@ def consistent_scale(odometry: npt.ArrayLike, correction: npt.ArrayLike, points:
         scores = np.array([q.score if p.criterion == "capped" else q.matched_ms for q in parts])
     key = np.where(np.isnan(scores), np.inf, scores)  # nothing matched (nan): no evidence at that scale
     best = int(np.lexsort((np.abs(alphas - 1.0), key))[0])  # the lowest score; of equal ones, nearest 1
-    return ScaleChoice(float(alphas[best]), alphas, scores)
+    if p.guard <= 0:
+        return ScaleChoice(float(alphas[best]), alphas, scores)
+    evidence = 0.0
+    if best != 0 and np.isfinite(key[best]) and np.isfinite(key[0]):
+        matched_only = p.criterion == "matched"
+        evidence = difference_evidence(block_sums(trajectories[0], points, scan, t_s, p, matched_only),
+                                       block_sums(trajectories[best], points, scan, t_s, p, matched_only))
+    if not evidence > p.guard:  # too little evidence (or none): the odometry stays
+        best = 0
+    return ScaleChoice(float(alphas[best]), alphas, scores, evidence)

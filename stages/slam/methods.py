@@ -10,7 +10,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -229,6 +229,8 @@ class MethodResult:
     likelihood_exponent: float | None = None
     #: the scale of the fusion's heading correction that the fused estimate applies (:func:`fused_estimate`)
     fusion_alpha: float | None = None
+    #: the chosen scale's gain over the odometry in standard errors (``slam.fusion_alpha_guard`` on only)
+    fusion_alpha_evidence: float | None = None
     #: (T,) the weight on the particles in the wide mode per scan (``cfg.wide`` only)
     wide_share: F64 | None = None
 
@@ -374,12 +376,13 @@ def run_method(
                 close()
     estimates = {"best_per_scan": h.best_trajectory(), "final_best_history": h.final_best_history(),
                  "weighted_mean": h.mean_trajectory(), "smoothed": h.smoothed_trajectory()}
-    fusion_jumps, alpha = 0, None
+    fusion_jumps, alpha, evidence = 0, None, None
     fusion, information = cfg.fusion, None
     if motion is not None:
         fusion, information = informed_fusion(method, cfg, basis, odometry, scans)
-        estimates["fused"], fusion_jumps, alpha = fused_estimate(odometry, estimates["smoothed"], motion, fusion,
-                                                                 scans, cfg.consistency)
+        estimates["fused"], fusion_jumps, alpha, ev = fused_estimate(odometry, estimates["smoothed"], motion, fusion,
+                                                                     scans, cfg.consistency)
+        evidence = float(np.nan_to_num(ev, posinf=1e9)) if cfg.consistency.guard > 0 else None  # JSON-safe
     poses = estimates[cfg.estimate]
     sigma_deg, median_information = fusion_record(fusion, information) if motion is not None else (None, None)
     return MethodResult(
@@ -389,7 +392,7 @@ def run_method(
         np.asarray(h.yaw_bias) if proposal.bias is not None else None, estimates,
         *_submap_counts(maps), fusion_jumps, sigma_deg, median_information,
         likelihood_exponent=cfg.likelihood_exponent if method in HILBERT_METHODS else None, fusion_alpha=alpha,
-        wide_share=np.asarray(h.wide_share) if proposal.wide is not None else None,
+        fusion_alpha_evidence=evidence, wide_share=np.asarray(h.wide_share) if proposal.wide is not None else None,
     )
 
 
@@ -446,23 +449,33 @@ def informed_fusion(method: str, cfg: SlamConfig, basis: hm.HilbertBasis, odomet
     return informed(cfg.fusion, information), information
 
 
+class FusedEstimate(NamedTuple):
+    """:func:`fused_estimate`'s result."""
+
+    poses: F64  # (T, 3) the fused trajectory
+    jumps: int  # scans where the filter's heading jumped (``HeadingFusion.jump_gate``)
+    alpha: float  # the scale of the fusion's correction applied
+    evidence: float = float("nan")  # the best scale's gain in standard errors (``MapConsistency.guard`` on only)
+
+
 def fused_estimate(odometry: F64, smoothed: F64, motion: OdometryMotion, model: HeadingFusion,
                    scans: Sequence[BeamSamples] = (), consistency: MapConsistency | None = None
-                   ) -> tuple[F64, int, float]:
+                   ) -> FusedEstimate:
     """The ``fused`` estimate: the smoother's heading fused with the odometry's (:func:`heading_fusion.fuse_heading`,
     with the odometry's per-scan increment yaw variances), its correction of the odometry's heading scaled by the
     ``alpha`` that makes the scans' endpoints most consistent (:func:`map_consistency.consistent_scale`; 1 where
     ``consistency.alpha_max`` is 0 or no scans are given), the odometry's increments composed along it; the
-    number of scans where the filter's heading jumped (``HeadingFusion.jump_gate``); and ``alpha``."""
+    number of scans where the filter's heading jumped (``HeadingFusion.jump_gate``); ``alpha``; and, with the
+    scale's guard on, its evidence (:class:`map_consistency.ScaleChoice`)."""
     t_s = np.cumsum(motion.dt)
     fused = fuse_heading(t_s, odometry[:, 2], smoothed[:, 2], motion.cov[:, 2, 2], model)
-    alpha = 1.0
+    alpha, evidence = 1.0, float("nan")
     if consistency is not None and consistency.alpha_max > 0 and len(scans):
         if len(scans) != len(odometry):
             raise ValueError(f"fused_estimate: {len(scans)} scans for {len(odometry)} odometry poses")
         points, scan = stacked_endpoints(scans)
-        alpha = consistent_scale(odometry, fused.correction, points, scan, t_s, consistency).alpha
-    return recompose(odometry, alpha * fused.correction), fused.jumps, alpha
+        alpha, _, _, evidence = consistent_scale(odometry, fused.correction, points, scan, t_s, consistency)
+    return FusedEstimate(recompose(odometry, alpha * fused.correction), fused.jumps, alpha, evidence)
 
 
 def _submap_counts(maps: Any) -> tuple[int, int]:

@@ -242,6 +242,9 @@ class SlamParams(StageParams):
         "51), which also falls when more endpoints merely overlap, 'matched', the mean square distance of the "
         "endpoints that have a counterpart (stop 52: better on the calibration runs, worse on the evaluated ones), "
         "or 'common', that of the endpoints matched at every scale searched (stop 53)")
+    fusion_alpha_guard: float = Field(0.0, ge=0, description="estimate = fused: the chosen scale stands only if "
+                                      "its criterion beats the odometry's by more than this many standard errors "
+                                      "over 10 s blocks of the run, else the odometry stays (stop 55; 0: off)")
     # -- FastSLAM grid baseline
     grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
     grid_l_occ: float = Field(0.85, gt=0, description="fastslam_grid log-odds added at an endpoint cell")
@@ -301,6 +304,10 @@ class SlamParams(StageParams):
         if self.common_support is not None and (self.workers > 0 or self.backend != "numpy"):
             raise ValueError("common_support compares every particle's samples in one process: set slam.workers = 0 "
                              "and slam.backend = numpy, or leave common_support unset")
+        if self.fusion_alpha_guard > 0 and self.fusion_alpha_criterion == "common":
+            raise ValueError("slam.fusion_alpha_guard compares the odometry's endpoints with the chosen scale's; "
+                             "criterion 'common' scores one shared set: set slam.fusion_alpha_criterion = capped "
+                             "or matched, or fusion_alpha_guard = 0")
         return self
 
     def submap_model(self) -> SubmapModel:
@@ -348,7 +355,8 @@ class SlamParams(StageParams):
                                  jump_window=self.fusion_jump_window,
                                  increment_scale=self.fusion_increment_scale,
                                  information_ref=self.fusion_information_ref),
-            consistency=MapConsistency(alpha_max=self.fusion_alpha_max, criterion=self.fusion_alpha_criterion),
+            consistency=MapConsistency(alpha_max=self.fusion_alpha_max, criterion=self.fusion_alpha_criterion,
+                                       guard=self.fusion_alpha_guard),
         )
 
 
@@ -410,6 +418,8 @@ class SlamStage(Stage):
                     **({"submap_revisits": res.submap_revisits} if res.submap_revisits else {}),
                     **({"fusion_jumps": res.fusion_jumps} if p.estimate == "fused" and m != "odometry" else {}),
                     **({"fusion_alpha": res.fusion_alpha} if scaled else {}),
+                    **({"fusion_alpha_evidence": res.fusion_alpha_evidence}
+                       if scaled and res.fusion_alpha_evidence is not None else {}),
                     **({"fusion_filter_sigma_deg": round(res.fusion_filter_sigma_deg, 3)}
                        if p.estimate == "fused" and res.fusion_filter_sigma_deg is not None and m != "odometry"
                        else {}),
@@ -422,7 +432,10 @@ class SlamStage(Stage):
                 if scaled:
                     ctx.console.print(f"slam: {m}: the fused estimate applies {res.fusion_alpha:g} x the fusion's "
                                       "heading correction (the scale that makes the scans most consistent; 0: the "
-                                      "odometry itself, the filter's heading made them less consistent)")
+                                      "odometry itself, the filter's heading made them less consistent)"
+                                      + (f"; the best scale's gain: {res.fusion_alpha_evidence:.2f} standard errors "
+                                         f"(guard {p.fusion_alpha_guard:g})"
+                                         if res.fusion_alpha_evidence is not None else ""))
                 if m != "odometry":
                     # the filter's own heading: the fused estimate leans on the odometry and would hide a divergence
                     own = res.estimates.get("smoothed", res.poses) if p.estimate == "fused" else res.poses

@@ -292,6 +292,8 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                        "resamplings": res.resampled, "scans": len(odo)}
                 if est_name == "fused" and res.fusion_alpha is not None and cfg.consistency.alpha_max > 0:
                     row["fusion_alpha"] = res.fusion_alpha
+                    if res.fusion_alpha_evidence is not None:
+                        row["fusion_alpha_evidence"] = res.fusion_alpha_evidence
                 if est_name == "fused" and res.heading_information is not None:  # as the --from-kept rows give them
                     row["heading_information"] = res.heading_information
                     if res.fusion_filter_sigma_deg is not None:
@@ -408,9 +410,11 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
                 extra = {} if median_information is None else {
                     "heading_information": median_information, "fusion_filter_sigma_deg": sigma_deg}
                 beams = load_scans() if consistency.alpha_max > 0 else []
-                fused, jumps, alpha = fused_estimate(odo, kept["pose"], motion, model, beams, consistency)
+                fused, jumps, alpha, evidence = fused_estimate(odo, kept["pose"], motion, model, beams, consistency)
                 if consistency.alpha_max > 0:
                     extra["fusion_alpha"] = alpha
+                if consistency.guard > 0:
+                    extra["fusion_alpha_evidence"] = float(np.nan_to_num(evidence, posinf=1e9))
                 truth: Truth = (kept["truth_t_ns"], kept["truth_xy"], kept["truth_yaw"])
                 row = {"seq": run_dir.name, "method": label, "seed": seed, "config": config,
                        **error_fields(t_ns, np.asarray(fused, np.float64), truth), "scans": len(odo),
