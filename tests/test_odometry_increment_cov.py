@@ -144,3 +144,23 @@ def test_heading_window_nees_is_one_for_independent_errors_and_grows_with_a_bias
     gap[5000] = False
     assert heading_window_nees(est, ref, var, gap)[10] == pytest.approx(honest[10], rel=0.01)
     assert np.isnan(heading_window_nees(est[:50], ref[:50], var[:50], ok[:50], windows=(100,))[100])
+
+
+def test_distance_ratio_finds_a_speed_scale_and_ignores_a_standstill() -> None:
+    from stages.odometry.metrics import distance_ratio
+
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 120.0, 0.1)
+    moving = t < 80  # 80 s on a circle at 1 m/s, then 40 s standing still
+    s = np.where(moving, t, 80.0)
+    ref = np.c_[20 * np.cos(s / 20), 20 * np.sin(s / 20)]
+    est = ref[0] + 1.02 * (ref - ref[0]) + rng.normal(0, 0.02, ref.shape)  # 2 % too fast, 2 cm noise
+    ok = np.ones(len(t), bool)
+    r = distance_ratio(t, est, ref, ok)
+    assert r["median"] == pytest.approx(1.02, abs=0.002) and r["p10"] > 1.01 and r["p90"] < 1.03
+    # windows that end in the standstill count while the truth still moves 3 m (starts up to ~77 s); later ones not
+    assert int(np.sum(t < 76)) <= r["windows"] <= int(np.sum(t < 78))
+    bad = ok.copy()
+    bad[:300] = False  # the first 30 s unusable: their windows are left out
+    assert distance_ratio(t, est, ref, bad)["windows"] < r["windows"] - 250
+    assert np.isnan(distance_ratio(t[:50], est[:50], ref[:50], ok[:50])["median"])  # no 10 s window

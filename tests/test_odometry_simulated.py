@@ -93,6 +93,13 @@ def test_simulated_sequence_end_to_end(simulated: dict[str, Path], tmp_path: Pat
     # stages/odometry/README.md): 95 % of the normalised increment errors below chi-square(3)'s 95 % point
     nees = ostats["increment_nees"]
     assert nees["increments"] >= 100 and nees["share_below_chi2_95"] >= 0.95 and nees["mean"] <= 3.0 * NEES_TOLERANCE
+    if fmt == "folder":  # the check's command on the same run: its speed scale (drift under 3 %) is near 1
+        from stages.odometry import nees as nees_cli
+
+        rows = tmp_path / "nees.jsonl"
+        assert nees_cli.main([str(out.parent), out.name, "--speed", "--json", str(rows)]) == 0
+        ratio = json.loads(rows.read_text().splitlines()[0])["distance_ratio_10s"]
+        assert ratio["windows"] > 0 and 0.95 < ratio["p10"] <= ratio["median"] <= ratio["p90"] < 1.05
 
 
 def test_bag_and_folder_forms_ingest_the_same_points(simulated: dict[str, Path], tmp_path: Path) -> None:

@@ -119,3 +119,27 @@ def heading_window_nees(est_yaw: F64, ref_yaw: F64, var_yaw: F64, ok: npt.NDArra
         e = wrap_angle((est_yaw[k + w] - est_yaw[k]) - (ref_yaw[k + w] - ref_yaw[k]))
         out[w] = float(np.mean(e[good] ** 2 / v[good])) if good.any() else float("nan")
     return out
+
+
+def distance_ratio(t_s: F64, est_xy: F64, ref_xy: F64, ok: npt.NDArray[np.bool_], window_s: float = 10.0,
+                   min_m: float = 3.0) -> dict[str, Any]:
+    """The odometry's speed scale against the truth: from every scan, the straight-line distance the estimate
+    moves in the next ``window_s`` seconds over the distance the truth moves, where the truth moves at least
+    ``min_m`` (a short window bends too little for a heading error to matter; straight-line, so position
+    noise at a standstill does not add length as a summed path would). Both ends ``ok``. Returns the count,
+    median and 10th / 90th percentiles of the ratio (1: no scale error; NaN where no window qualifies). A
+    persistent scale error shows as a median off 1; noise as the spread."""
+    t = np.asarray(t_s, np.float64)
+    est, ref = np.asarray(est_xy, np.float64), np.asarray(ref_xy, np.float64)
+    good = np.asarray(ok, bool)
+    j = np.searchsorted(t, t + window_s)
+    i = np.flatnonzero(j < len(t))
+    j = j[i]
+    d_ref = np.hypot(*(ref[j] - ref[i]).T)
+    use = good[i] & good[j] & (d_ref >= min_m)
+    r = np.hypot(*(est[j[use]] - est[i[use]]).T) / d_ref[use]
+    if not len(r):
+        return {"windows": 0, "median": float("nan"), "p10": float("nan"), "p90": float("nan")}
+    p10, med, p90 = np.percentile(r, [10, 50, 90])
+    return {"windows": len(r), "median": round(float(med), 5), "p10": round(float(p10), 5),
+            "p90": round(float(p90), 5)}

@@ -6,8 +6,9 @@ sequence, the normalised estimation error squared of the body-frame increments a
 runs (never evaluated ones) whose pooled mean NEES gives the factor ``increment_cov_scale`` that makes it 3;
 the table is then also given with that factor. ``--windows``: also the heading NEES over windows of 1, 10, 100
 and 300 increments (:func:`stages.odometry.metrics.heading_window_nees`; 1 at every window when the increments'
-errors are independent). Runs come from ``pipeline run odometry --seq SEQ
---runs-dir RUNS_DIR``; the covariances are divided by the factor each run was made with, so the factor is
+errors are independent). ``--speed``: also the distance the odometry moves in 10 s over the truth's
+(:func:`stages.odometry.metrics.distance_ratio`: a speed scale error, issue 27 item 2). Runs come from
+``pipeline run odometry --seq SEQ --runs-dir RUNS_DIR``; the covariances are divided by the factor each run was made with, so the factor is
 chosen on the EKF's own covariance.
 """
 
@@ -25,14 +26,21 @@ import numpy.typing as npt
 from pipeline.errors import UserError
 from schemas.io import read_artifact
 from stages.ingest.geometry import interpolate_poses, yaw_of
-from stages.odometry.metrics import NEES_TOLERANCE, NEES_WINDOWS, heading_window_nees, increment_nees
+from stages.odometry.metrics import (
+    NEES_TOLERANCE,
+    NEES_WINDOWS,
+    distance_ratio,
+    heading_window_nees,
+    increment_nees,
+)
 from stages.odometry.stage import _COV_IDX, COV_COLS, POSE_COLS
 
 F64 = npt.NDArray[np.float64]
 
 
-def load(run: Path) -> tuple[F64, F64, F64, npt.NDArray[np.bool_]]:
-    """Estimated and true (x, y, yaw) at the scans, the EKF's own increment covariance and the usable rows."""
+def load(run: Path) -> tuple[F64, F64, F64, npt.NDArray[np.bool_], F64]:
+    """Estimated and true (x, y, yaw) at the scans, the EKF's own increment covariance, the usable rows and the
+    scans' times (s from the first)."""
     path = run / "odometry" / "odometry.parquet"
     if not path.exists():
         raise UserError(f"{path}: no odometry run (pipeline run odometry --seq {run.name} --runs-dir {run.parent})")
@@ -48,7 +56,7 @@ def load(run: Path) -> tuple[F64, F64, F64, npt.NDArray[np.bool_]]:
     cov = np.zeros((len(t), 3, 3))
     for c, (i, j) in zip(COV_COLS, _COV_IDX, strict=True):
         cov[:, i, j] = cov[:, j, i] = odo[c].to_numpy() / scale
-    return est, ref, cov, odo["valid"].to_numpy() & inside
+    return est, ref, cov, odo["valid"].to_numpy() & inside, (t - t[0]) * 1e-9
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -57,6 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("seqs", nargs="+")
     ap.add_argument("--calibrate", nargs="*", default=[], help="runs that choose the factor (not evaluated)")
     ap.add_argument("--windows", action="store_true", help="also the heading NEES over windows of increments")
+    ap.add_argument("--speed", action="store_true", help="also the odometry's distance over 10 s against the truth's")
     ap.add_argument("--json", type=Path, help="also write the rows here")
     a = ap.parse_args(argv)
     overlap = set(a.seqs) & set(a.calibrate)
@@ -65,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     data = {s: load(a.runs_dir / s) for s in [*a.calibrate, *a.seqs]}
     scale = 1.0
     if a.calibrate:
-        stats = [increment_nees(*data[s]) for s in a.calibrate]
+        stats = [increment_nees(*data[s][:4]) for s in a.calibrate]
         n = sum(st["increments"] for st in stats)
         scale = sum(st["mean"] * st["increments"] for st in stats) / n / 3.0
         print(f"factor from {', '.join(a.calibrate)} ({n} increments): {scale:.3f}")
@@ -73,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"tolerance: mean NEES within a factor {NEES_TOLERANCE:g} of 3")
     print("| sequence | role | increments | mean (factor 1) | median | < chi2 95 % | x, y, yaw | mean (factor) | ok |")
     print("|---|---|---|---|---|---|---|---|---|")
-    for s, (est, ref, cov, ok) in data.items():
+    for s, (est, ref, cov, ok, _) in data.items():
         st1 = increment_nees(est, ref, cov, ok)
         sts = increment_nees(est, ref, cov * scale, ok)
         role = "calibration" if s in a.calibrate else "evaluated"
@@ -86,10 +95,18 @@ def main(argv: list[str] | None = None) -> int:
               "(chi-square(1): 1 at every W when the increments' errors are independent):\n")
         print("| sequence | role | " + " | ".join(f"W = {w}" for w in NEES_WINDOWS) + " |")
         print("|---|---|" + "---|" * len(NEES_WINDOWS))
-        for row, (s, (est, ref, cov, ok)) in zip(rows, data.items(), strict=True):
+        for row, (s, (est, ref, cov, ok, _)) in zip(rows, data.items(), strict=True):
             wn = heading_window_nees(est[:, 2], ref[:, 2], cov[:, 2, 2] * scale, ok)
             row["heading_window_nees"] = {str(w): round(v, 4) for w, v in wn.items()}
             print(f"| {s} | {row['role']} | " + " | ".join(f"{v:.2f}" for v in wn.values()) + " |")
+    if a.speed:
+        print("\nthe odometry's straight-line distance over 10 s against the truth's, from every scan where the truth "
+              "moves at least 3 m (1: no speed scale error):\n")
+        print("| sequence | role | windows | median | 10 % | 90 % |\n|---|---|---|---|---|---|")
+        for row, (s, (est, ref, _, ok, t)) in zip(rows, data.items(), strict=True):
+            row["distance_ratio_10s"] = dr = distance_ratio(t, est[:, :2], ref[:, :2], ok)
+            print(f"| {s} | {row['role']} | {dr['windows']} | {dr['median']:.4f} | {dr['p10']:.4f} | "
+                  f"{dr['p90']:.4f} |")
     if a.json:
         a.json.write_text("".join(json.dumps(r) + "\n" for r in rows))
     return 0
