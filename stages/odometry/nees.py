@@ -8,8 +8,8 @@ the table is then also given with that factor. ``--windows``: also the heading N
 and 300 increments (:func:`stages.odometry.metrics.heading_window_nees`; 1 at every window when the increments'
 errors are independent). ``--speed``: also the distance the odometry moves in 10 s over the truth's
 (:func:`stages.odometry.metrics.distance_ratio`: a speed scale error, issue 27 item 2). Runs come from
-``pipeline run odometry --seq SEQ --runs-dir RUNS_DIR``; the covariances are divided by the factor each run was made with, so the factor is
-chosen on the EKF's own covariance.
+``pipeline run odometry --seq SEQ --runs-dir RUNS_DIR``; the covariances are divided by the factor each run was
+made with, so the factor is chosen on the EKF's own covariance.
 """
 
 from __future__ import annotations
