@@ -250,6 +250,13 @@ def test_consistency_sweep_perturbs_the_odometry_and_names_bad_input(tmp_path: P
                                    "--set", "workers=0", "--out", str(prof)]) == 0
     assert len(re.findall(r"seq_s seed 3 \(.+\.npz\): alpha by score", capsys.readouterr().out)) == 2
     assert len(prof.read_text().splitlines()) == 4
+    # without --alphas: the grid the fused estimate searches under the given settings
+    assert consistency_sweep.main([args[0], "--kept", str(tmp_path / "kept"), "--set", "workers=0", "--set",
+                                   "fusion_alpha_max=0.5", "--out", str(prof)]) == 0
+    assert sorted({json.loads(r)["value"] for r in prof.read_text().splitlines()}) == [0, 0.125, 0.25, 0.375, 0.5]
+    assert consistency_sweep.main([args[0], "--kept", str(tmp_path / "kept"), "--set", "fusion_alpha_max=0",
+                                   "--out", str(prof)]) == 2
+    assert "fusion_alpha_max is 0" in capsys.readouterr().err
     assert consistency_sweep.main([args[0], "--kept", str(tmp_path / "none"), "--out", str(prof)]) == 2
     assert "no smoothed rich_slam trajectory kept" in capsys.readouterr().err
 

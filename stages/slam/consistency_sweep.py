@@ -174,8 +174,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="heading ramps over the run, rad (write --ramps=-0.1,0,0.1: a leading minus needs the =)")
     ap.add_argument("--kept", type=Path, help="instead: the fused estimate's scale, on the smoothed trajectories "
                     "that table3 --keep kept in this folder")
-    ap.add_argument("--alphas", default=",".join(f"{a:g}" for a in ALPHAS), help="scales of the fused correction "
-                    "(with --kept)")
+    ap.add_argument("--alphas", help="scales of the fused correction (with --kept; default: the grid the fused "
+                    "estimate searches, slam.fusion_alpha_max in steps of 0.125)")
     ap.add_argument("--method", default="rich_slam", help="whose kept trajectories (with --kept)")
     ap.add_argument("--set", action="append", default=[], metavar="PARAM=JSON",
                     help="a slam parameter (the beam sampling's), as table3 takes it")
@@ -185,7 +185,10 @@ def main(argv: list[str] | None = None) -> int:
         scales, ramps = _floats(a.scales, "scales"), _floats(a.ramps, "ramps")
         params = SlamParams(**slam_overrides(a.set))
         if a.kept is not None:
-            alphas = _floats(a.alphas, "alphas")
+            grid = params.config().consistency.scales()
+            alphas = _floats(a.alphas, "alphas") if a.alphas is not None else [float(v) for v in grid]
+            if not alphas:
+                raise ValueError("slam.fusion_alpha_max is 0: no scale is searched; give --alphas or set it above 0")
             results = []
             for run in a.runs:
                 rows = profile_kept(run, a.kept, params, alphas, a.method)
