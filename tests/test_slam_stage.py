@@ -384,6 +384,9 @@ def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest
     assert g_kept["fusion_alpha"] == g_run["fusion_alpha"] == 0.0
     assert g_kept["fusion_alpha_evidence"] == g_run["fusion_alpha_evidence"] == 0.0
     assert g_kept["yaw_rmse_whole_deg"] == pytest.approx(odo2["yaw_rmse_whole_deg"], rel=1e-9)
+    assert table3.main([*guard, str(tmp_path / "t3_g_off.jsonl"), "--set", "fusion_alpha_max=0", "--from-kept",
+                        str(keep)]) == 0  # nothing searched: nothing guarded, no evidence recorded
+    assert "fusion_alpha_evidence" not in json.loads((tmp_path / "t3_g_off.jsonl").read_text().splitlines()[0])
     for k in ("yaw_rmse_whole_deg", "pos_rmse_whole_m"):
         assert kept0[k] == pytest.approx(run0[k], rel=1e-9, abs=1e-12)
     # the correction's scale chosen by the scans' consistency (fusion_alpha_max): the same both ways, recorded

@@ -382,7 +382,7 @@ def run_method(
         fusion, information = informed_fusion(method, cfg, basis, odometry, scans)
         estimates["fused"], fusion_jumps, alpha, ev = fused_estimate(odometry, estimates["smoothed"], motion, fusion,
                                                                      scans, cfg.consistency)
-        evidence = float(np.nan_to_num(ev, posinf=1e9)) if cfg.consistency.guard > 0 else None  # JSON-safe
+        evidence = None if np.isnan(ev) else float(min(ev, 1e9))  # nan: no guard, or nothing searched; JSON-safe
     poses = estimates[cfg.estimate]
     sigma_deg, median_information = fusion_record(fusion, information) if motion is not None else (None, None)
     return MethodResult(

@@ -413,8 +413,8 @@ def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any],
                 fused, jumps, alpha, evidence = fused_estimate(odo, kept["pose"], motion, model, beams, consistency)
                 if consistency.alpha_max > 0:
                     extra["fusion_alpha"] = alpha
-                if consistency.guard > 0:
-                    extra["fusion_alpha_evidence"] = float(np.nan_to_num(evidence, posinf=1e9))
+                if not np.isnan(evidence):  # the guard ran (nan: off, or nothing searched)
+                    extra["fusion_alpha_evidence"] = float(min(evidence, 1e9))
                 truth: Truth = (kept["truth_t_ns"], kept["truth_xy"], kept["truth_yaw"])
                 row = {"seq": run_dir.name, "method": label, "seed": seed, "config": config,
                        **error_fields(t_ns, np.asarray(fused, np.float64), truth), "scans": len(odo),
