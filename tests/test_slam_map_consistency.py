@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -257,3 +259,8 @@ def test_the_guard_keeps_a_clear_correction_and_drops_one_the_noise_chose() -> N
     assert np.array_equal(free.scores, guarded.scores)
     with pytest.raises(ValueError, match="criterion 'common'"):
         MapConsistency(guard=2.0, criterion="common")
+    from stages.slam.stage import SlamParams  # the stage's parameters name theirs
+
+    with pytest.raises(ValueError, match=re.escape("slam.fusion_alpha_guard = 2 with slam.fusion_alpha_criterion "
+                                                   "= common: the guard compares")):
+        SlamParams(fusion_alpha_guard=2, fusion_alpha_criterion="common")

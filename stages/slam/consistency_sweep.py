@@ -185,8 +185,8 @@ def main(argv: list[str] | None = None) -> int:
         scales, ramps = _floats(a.scales, "scales"), _floats(a.ramps, "ramps")
         params = SlamParams(**slam_overrides(a.set))
         if a.kept is not None:
-            grid = params.config().consistency.scales()
-            alphas = _floats(a.alphas, "alphas") if a.alphas is not None else [float(v) for v in grid]
+            alphas = (_floats(a.alphas, "alphas") if a.alphas is not None
+                      else [float(v) for v in params.consistency_model().scales()])
             if not alphas:
                 raise ValueError("slam.fusion_alpha_max is 0: no scale is searched; give --alphas or set it above 0")
             results = []

@@ -72,8 +72,8 @@ class MapConsistency(BaseModel):
     @model_validator(mode="after")
     def _guard_criterion(self) -> MapConsistency:
         if self.guard > 0 and self.criterion == "common":
-            raise ValueError("the guard (slam.fusion_alpha_guard) compares the odometry's points with the chosen "
-                             "scale's; criterion 'common' scores one shared set: use 'capped' or 'matched'")
+            raise ValueError("the guard compares the odometry's points with the chosen scale's, and criterion "
+                             "'common' scores one shared set: use criterion 'capped' or 'matched', or guard 0")
         return self
 
     def scales(self) -> F64:
@@ -141,6 +141,48 @@ def nearest_far(world: F64, t_points: F64, params: MapConsistency | None = None)
     return np.where(far, d, p.truncation).min(axis=1), far.any(axis=1)
 
 
+class PointDistances(NamedTuple):
+    """The scored points of one trajectory (:func:`point_distances`)."""
+
+    t: F64  # (N,) the thinned points' scan times, s
+    nearest: F64  # (N,) each one's capped distance to the nearest point ``separation`` away in time
+    matched: npt.NDArray[np.bool_]  # (N,) whether one lies within the cap
+
+
+def point_distances(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.ArrayLike, t_s: npt.ArrayLike,
+                    params: MapConsistency | None = None) -> PointDistances:
+    """The points :func:`consistency_parts` scores along ``poses`` (:func:`thinned`) and their capped distances
+    (:func:`nearest_far`): what the score and its block sums are made of."""
+    p = params or MapConsistency()
+    t = np.asarray(t_s, np.float64)
+    scan = np.asarray(scan, np.int64)
+    _check_stamps(poses, t)
+    w = world_points(poses, points, scan)
+    tp = t[scan]
+    keep = thinned(w, tp, p)
+    nearest, matched = nearest_far(w[keep], tp[keep], p)
+    return PointDistances(tp[keep], nearest, matched)
+
+
+def _parts(d: PointDistances) -> ConsistencyParts:
+    if len(d.nearest) == 0:
+        return ConsistencyParts(0.0, 0.0, float("nan"))
+    ms = float(np.mean(d.nearest[d.matched] ** 2)) if d.matched.any() else float("nan")
+    return ConsistencyParts(float(np.mean(d.nearest ** 2)), float(np.mean(d.matched)), ms)
+
+
+def _block_sums(d: PointDistances, t0: float, n_blocks: int, block_s: float,
+                matched_only: bool) -> tuple[F64, F64]:
+    use = d.matched if matched_only else np.ones(len(d.nearest), bool)
+    block = np.floor((d.t[use] - t0) / block_s).astype(np.int64)
+    return (np.bincount(block, d.nearest[use] ** 2, n_blocks).astype(np.float64),
+            np.bincount(block, None, n_blocks).astype(np.float64))
+
+
+def _n_blocks(t: F64, block_s: float) -> int:
+    return int(np.floor((t[-1] - t[0]) / block_s)) + 1 if len(t) else 0
+
+
 def block_sums(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.ArrayLike, t_s: npt.ArrayLike,
                params: MapConsistency | None = None, matched_only: bool = False) -> tuple[F64, F64]:
     """Per time block of ``params.guard_block`` s from the first stamp: the sum of the thinned points' squared
@@ -148,17 +190,8 @@ def block_sums(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.ArrayLike,
     ``S.sum() / N.sum()`` is :func:`consistency_parts`' ``score`` (``matched_ms``)."""
     p = params or MapConsistency()
     t = np.asarray(t_s, np.float64)
-    scan = np.asarray(scan, np.int64)
-    _check_stamps(poses, t)
-    n_blocks = int(np.floor((t[-1] - t[0]) / p.guard_block)) + 1 if len(t) else 0
-    w = world_points(poses, points, scan)
-    tp = t[scan]
-    keep = thinned(w, tp, p)
-    nearest, matched = nearest_far(w[keep], tp[keep], p)
-    use = matched if matched_only else np.ones(len(keep), bool)
-    block = np.floor((tp[keep][use] - t[0]) / p.guard_block).astype(np.int64)
-    return (np.bincount(block, nearest[use] ** 2, n_blocks).astype(np.float64),
-            np.bincount(block, None, n_blocks).astype(np.float64))
+    d = point_distances(poses, points, scan, t, p)
+    return _block_sums(d, float(t[0]) if len(t) else 0.0, _n_blocks(t, p.guard_block), p.guard_block, matched_only)
 
 
 def difference_evidence(base: tuple[F64, F64], other: tuple[F64, F64]) -> float:
@@ -185,18 +218,7 @@ def consistency_parts(poses: npt.ArrayLike, points: npt.ArrayLike, scan: npt.Arr
     """:func:`map_consistency` with its two parts: ``score = matched * matched_ms + (1 - matched) *
     truncation^2``. A trajectory can lower the score by bringing points closer to their counterparts or by giving
     more points a counterpart at all (stages/slam/README.md, stop 52: the second rewards overlap, not agreement)."""
-    p = params or MapConsistency()
-    t = np.asarray(t_s, np.float64)
-    scan = np.asarray(scan, np.int64)
-    _check_stamps(poses, t)
-    w = world_points(poses, points, scan)
-    tp = t[scan]
-    keep = thinned(w, tp, p)
-    if len(keep) == 0:
-        return ConsistencyParts(0.0, 0.0, float("nan"))
-    nearest, matched = nearest_far(w[keep], tp[keep], p)
-    ms = float(np.mean(nearest[matched] ** 2)) if matched.any() else float("nan")
-    return ConsistencyParts(float(np.mean(nearest ** 2)), float(np.mean(matched)), ms)
+    return _parts(point_distances(poses, points, scan, t_s, params))
 
 
 def _check_stamps(poses: npt.ArrayLike, t: F64) -> None:
@@ -272,20 +294,22 @@ def consistent_scale(odometry: npt.ArrayLike, correction: npt.ArrayLike, points:
     alphas = p.scales()
     c = np.asarray(correction, np.float64)
     trajectories = [recompose(odometry, a * c) for a in alphas]
+    dists: list[PointDistances] = []
     if p.criterion == "common":
         scores = common_support_scores(trajectories, points, scan, t_s, p)[0]
     else:
-        parts = [consistency_parts(traj, points, scan, t_s, p) for traj in trajectories]
+        dists = [point_distances(traj, points, scan, t_s, p) for traj in trajectories]
+        parts = [_parts(d) for d in dists]
         scores = np.array([q.score if p.criterion == "capped" else q.matched_ms for q in parts])
     key = np.where(np.isnan(scores), np.inf, scores)  # nothing matched (nan): no evidence at that scale
     best = int(np.lexsort((np.abs(alphas - 1.0), key))[0])  # the lowest score; of equal ones, nearest 1
     if p.guard <= 0:
         return ScaleChoice(float(alphas[best]), alphas, scores)
     evidence = 0.0
-    if best != 0 and np.isfinite(key[best]) and np.isfinite(key[0]):
-        matched_only = p.criterion == "matched"
-        evidence = difference_evidence(block_sums(trajectories[0], points, scan, t_s, p, matched_only),
-                                       block_sums(trajectories[best], points, scan, t_s, p, matched_only))
+    if best != 0 and np.isfinite(key[best]) and np.isfinite(key[0]):  # the points scored above, summed by block
+        t = np.asarray(t_s, np.float64)
+        blocks = (float(t[0]), _n_blocks(t, p.guard_block), p.guard_block, p.criterion == "matched")
+        evidence = difference_evidence(_block_sums(dists[0], *blocks), _block_sums(dists[best], *blocks))
     if not evidence > p.guard:  # too little evidence (or none): the odometry stays
         best = 0
     return ScaleChoice(float(alphas[best]), alphas, scores, evidence)

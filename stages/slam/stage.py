@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
 import pyarrow.parquet as pq
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams
@@ -304,11 +304,17 @@ class SlamParams(StageParams):
         if self.common_support is not None and (self.workers > 0 or self.backend != "numpy"):
             raise ValueError("common_support compares every particle's samples in one process: set slam.workers = 0 "
                              "and slam.backend = numpy, or leave common_support unset")
-        if self.fusion_alpha_guard > 0 and self.fusion_alpha_criterion == "common":
-            raise ValueError("slam.fusion_alpha_guard compares the odometry's endpoints with the chosen scale's; "
-                             "criterion 'common' scores one shared set: set slam.fusion_alpha_criterion = capped "
-                             "or matched, or fusion_alpha_guard = 0")
+        try:
+            self.consistency_model()
+        except ValidationError as exc:
+            raise ValueError(f"slam.fusion_alpha_guard = {self.fusion_alpha_guard:g} with slam.fusion_alpha_criterion "
+                             f"= {self.fusion_alpha_criterion}: {exc.errors()[0]['ctx']['error']}") from None
         return self
+
+    def consistency_model(self) -> MapConsistency:
+        """The fused estimate's search of the correction's scale (``fusion_alpha_*``)."""
+        return MapConsistency(alpha_max=self.fusion_alpha_max, criterion=self.fusion_alpha_criterion,
+                              guard=self.fusion_alpha_guard)
 
     def submap_model(self) -> SubmapModel:
         """The submaps' geometry (their samples reach max_range plus the endpoint tolerance)."""
@@ -355,8 +361,7 @@ class SlamParams(StageParams):
                                  jump_window=self.fusion_jump_window,
                                  increment_scale=self.fusion_increment_scale,
                                  information_ref=self.fusion_information_ref),
-            consistency=MapConsistency(alpha_max=self.fusion_alpha_max, criterion=self.fusion_alpha_criterion,
-                                       guard=self.fusion_alpha_guard),
+            consistency=self.consistency_model(),
         )
 
 
