@@ -264,3 +264,24 @@ def test_the_guard_keeps_a_clear_correction_and_drops_one_the_noise_chose() -> N
     with pytest.raises(ValueError, match=re.escape("slam.fusion_alpha_guard = 2 with slam.fusion_alpha_criterion "
                                                    "= common: the guard compares")):
         SlamParams(fusion_alpha_guard=2, fusion_alpha_criterion="common")
+
+
+def test_the_guard_under_the_matched_criterion_weighs_the_matched_points_only() -> None:
+    """With ``criterion = 'matched'`` the guard's evidence is the difference of the matched points' mean squares:
+    recomputed here from :func:`block_sums` with ``matched_only`` on the two trajectories it compares, it must
+    equal what :func:`consistent_scale` records, and differ from the capped score's evidence."""
+    t, truth, pts, scan = _room_run(1)
+    odometry = _drifted(truth, t, 4e-3)
+    correction = -4e-3 * t
+    p = MapConsistency(guard=2.0, criterion="matched")
+    choice = consistent_scale(odometry, correction, pts, scan, t, p)
+    assert choice.alpha > 0 and choice.evidence > 2.0
+    chosen = recompose(odometry, choice.alpha * correction)
+    expected = difference_evidence(block_sums(odometry, pts, scan, t, p, matched_only=True),
+                                   block_sums(chosen, pts, scan, t, p, matched_only=True))
+    assert choice.evidence == pytest.approx(expected, rel=1e-12)
+    capped = difference_evidence(block_sums(odometry, pts, scan, t, p), block_sums(chosen, pts, scan, t, p))
+    assert capped != pytest.approx(expected, rel=1e-3)
+    # above the evidence the odometry stays, whatever the search chose
+    strict = consistent_scale(odometry, correction, pts, scan, t, p.model_copy(update={"guard": expected * 1.01}))
+    assert strict.alpha == 0.0 and strict.evidence == pytest.approx(expected, rel=1e-12)

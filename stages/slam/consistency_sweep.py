@@ -50,8 +50,6 @@ F64 = npt.NDArray[np.floating[Any]]
 
 SCALES = (0.94, 0.97, 1.0, 1.03, 1.06)
 RAMPS = (-0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2)
-#: scales of the fused correction (``--kept``): the default search's grid (0..1.5 in steps of 0.125)
-ALPHAS = tuple(float(a) for a in MapConsistency().scales())
 
 
 def sweep_run(run_dir: Path, params: SlamParams, scales: Sequence[float] = SCALES,
@@ -96,11 +94,14 @@ def _scored(kind: str, values: Sequence[float], estimates: Sequence[F64],
     return rows
 
 
-def profile_kept(run_dir: Path, keep: Path, params: SlamParams, alphas: Sequence[float] = ALPHAS,
+def profile_kept(run_dir: Path, keep: Path, params: SlamParams, alphas: Sequence[float] | None = None,
                  method: str = "rich_slam") -> list[dict[str, Any]]:
     """Rows of kind ``alpha`` for every smoothed trajectory of ``method`` kept for ``run_dir`` in ``keep``: the
     fusion's heading correction (as ``table3 --from-kept`` computes it, with ``params``' fusion settings) scaled
-    by each of ``alphas`` and composed with the odometry's increments; ``seed`` and ``kept`` name the file."""
+    by each of ``alphas`` (default: the grid ``params``' fused estimate searches) and composed with the odometry's
+    increments; ``seed`` and ``kept`` name the file."""
+    if alphas is None:
+        alphas = [float(v) for v in params.consistency_model().scales()]
     kept_runs = kept_smoothed(keep, run_dir.name, method)
     if not kept_runs:
         raise ValueError(f"{keep / run_dir.name}: no smoothed {method} trajectory kept (table3 --keep)")
