@@ -43,7 +43,9 @@ app = typer.Typer(
 console = Console(stderr=True)
 out = Console()
 
-SeqOpt = Annotated[str, typer.Option("--seq", "-s", help="sequence name, list (a,b) or glob ('coloradar_*')")]
+SeqOpt = Annotated[list[str], typer.Option(
+    "--seq", "-s", help="sequence name, list (a,b) or glob ('coloradar_*'); repeat it for more")]
+OneSeqOpt = Annotated[list[str], typer.Option("--seq", "-s", help="one sequence name")]
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override a parameter: STAGE.PARAM=VALUE")]
 RunsOpt = Annotated[Path | None, typer.Option("--runs-dir", help="run store (default ./runs or $RADAR_PIPELINE_RUNS)")]
 WorkflowOpt = Annotated[str, typer.Option("--workflow", "-w", help="workflow in workflows/ (or a .toml path)")]
@@ -55,6 +57,19 @@ def _sequences(seq: str | None, source: Path | None, dataset: str) -> list[Seque
     if not seq:
         raise UserError("--seq is required (see `pipeline sequences`), or pass --source PATH")
     return expand_sequences(seq, load_registry())
+
+
+def seq_spec(values: list[str] | None) -> str | None:
+    """Repeated ``--seq`` options as one sequence spec (``a,b``); None when none was given."""
+    return ",".join(values) if values else None
+
+
+def one_seq(values: list[str], command: str) -> str:
+    """The one sequence a command works on: a repeated ``--seq`` is a user error, not the last one silently."""
+    if len(values) != 1:
+        raise UserError(f"pipeline {command} works on one sequence; --seq was given {len(values)} times "
+                        f"({', '.join(values)}): run it once per sequence")
+    return values[0]
 
 
 def _runs_dir(runs_dir: Path | None, write: bool = False) -> Path:
@@ -90,7 +105,8 @@ def _print_outcomes(seq: str, outcomes: list[StageOutcome]) -> None:
 @app.command()
 def run(
     stages: Annotated[list[str], typer.Argument(help="stages to bring up to date, or 'all'")],
-    seq: Annotated[str | None, typer.Option("--seq", "-s", help="sequence name, list (a,b) or glob")] = None,
+    seq: Annotated[list[str] | None, typer.Option(
+        "--seq", "-s", help="sequence name, list (a,b) or glob; repeat it for more")] = None,
     set_: SetOpt = None,
     force: Annotated[bool, typer.Option("--force", help="rerun the named stages even when cached")] = False,
     runs_dir: RunsOpt = None,
@@ -107,7 +123,7 @@ def run(
     registry = load_stages()
     overrides = parse_set(set_ or [], registry)
     wf = load_workflow(workflow)
-    seqs = _sequences(seq, source, dataset)
+    seqs = _sequences(seq_spec(seq), source, dataset)
     runs = _runs_dir(runs_dir, write=True)
     forced = tuple(stages) if force else ()
     if len(seqs) == 1 and executor is None:
@@ -203,7 +219,7 @@ def status(
     registry = load_stages()
     overrides = parse_set(set_ or [], registry)
     wf = load_workflow(workflow)
-    for info in expand_sequences(seq, load_registry()):
+    for info in expand_sequences(seq_spec(seq) or "", load_registry()):
         runner = Runner(info, _runs_dir(runs_dir), registry, wf, overrides, console)
         table = Table(title=f"{info.name} ({runner.store.seq_dir})", title_justify="left")
         for col in ("stage", "state", "seconds", "finished", "why"):
@@ -258,11 +274,12 @@ def params(stage: Annotated[str | None, typer.Argument(help="a stage name (defau
 
 @app.command()
 def view(
-    seq: SeqOpt,
+    seqs: OneSeqOpt,
     stages: Annotated[list[str] | None, typer.Argument(help="stages to open (default: all present)")] = None,
     runs_dir: RunsOpt = None,
 ) -> None:
     """Open the run's .rrd files in the Rerun viewer (prints the command when headless)."""
+    seq = one_seq(seqs, "view")
     store = RunStore(_runs_dir(runs_dir), seq)
     present = [p.name for p in sorted(store.seq_dir.glob("*")) if p.is_dir() and not p.name.startswith(".")]
     order = {name: i for i, name in enumerate(STAGE_NAMES)}
@@ -281,7 +298,7 @@ def view(
 
 @app.command()
 def export(
-    seq: SeqOpt,
+    seqs: OneSeqOpt,
     fmt: Annotated[str, typer.Option("--format", "-f", help="tum | ply | mcap")],
     out_dir: Annotated[Path | None, typer.Option("--out", help="output folder (default runs/<seq>/export)")] = None,
     runs_dir: RunsOpt = None,
@@ -292,7 +309,7 @@ def export(
     """Export trajectories (TUM, evo-compatible), maps (PLY) or results (MCAP with Foxglove schemas)."""
     from pipeline.export import export as do_export
 
-    store = RunStore(_runs_dir(runs_dir), seq)
+    store = RunStore(_runs_dir(runs_dir), one_seq(seqs, "export"))
 
     def note(message: str) -> None:
         console.print(f"[yellow]note[/] {escape(message)}", soft_wrap=True, highlight=False)

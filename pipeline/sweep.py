@@ -261,7 +261,8 @@ def plot_sweep(wf: Workflow, root: Path, points: Sequence[SweepPoint], seqs: Seq
 # -- command line ----------------------------------------------------------------------------------------------
 def command(
     workflow: Annotated[str, typer.Argument(help="a sweep workflow in workflows/ (e.g. sweep_fig7) or a .toml")],
-    seq: Annotated[str, typer.Option("--seq", "-s", help="sequence name, list (a,b) or glob")] = "demo",
+    seq: Annotated[list[str] | None, typer.Option(
+        "--seq", "-s", help="sequence name, list (a,b) or glob; repeat it for more (default: demo)")] = None,
     set_: Annotated[list[str] | None, typer.Option("--set", help="extra STAGE.PARAM=VALUE for every point")] = None,
     runs_dir: Annotated[Path | None, typer.Option("--runs-dir", help="run store (default ./runs)")] = None,
     executor: Annotated[str | None, typer.Option("--executor", help="local (process pool) or ray; default: in "
@@ -280,7 +281,7 @@ def command(
 
     console = Console(stderr=True)
     overrides = parse_set(set_ or [], load_stages())
-    seqs = expand_sequences(seq, load_registry())
+    seqs = expand_sequences(",".join(seq) if seq else "demo", load_registry())
     ex = make_executor(executor, workers) if executor else None
     res = run_sweep(workflow, seqs, runs_dir or default_runs_dir(), overrides, ex, console, force=force)
     failed = [r for r in res.results if not r.ok]

@@ -182,3 +182,18 @@ def test_failed_sequences_of_a_multi_sequence_run_set_the_exit_code(tmp_path: Pa
              env={"COLORADAR_ROOT": str(tmp_path)})
     assert r.returncode == 2, r.stderr
     assert "coloradar_1: failed" in r.stderr and "coloradar_2: failed" in r.stderr
+
+
+def test_a_repeated_seq_adds_sequences_and_a_one_sequence_command_refuses_it(tmp_path: Path) -> None:
+    """``--seq a --seq b`` means both (it once ran only b, silently); view and export take one and say so."""
+    r = cli("status", "--seq", "demo", "--seq", "demo_drift,sim_hallway_loop", "--runs-dir", str(tmp_path))
+    assert r.returncode == 0
+    titles = re.findall(r"^([a-z_]+)\b(?! +│)", r.stdout + r.stderr, re.MULTILINE)  # a table title (may wrap)
+    assert titles == ["demo", "demo_drift", "sim_hallway_loop"]
+    r = cli("run", "slam", "--seq", "demo", "--seq", "dmeo", "--runs-dir", str(tmp_path))
+    assert r.returncode == 2 and "unknown sequence 'dmeo'" in r.stderr  # the first is not run alone
+    assert not (tmp_path / "demo").exists()
+    for args in (["view"], ["export", "--format", "tum"]):
+        r = cli(*args, "--seq", "demo", "--seq", "demo_drift", "--runs-dir", str(tmp_path))
+        assert r.returncode == 2 and r.stderr.count("\n") == 1
+        assert f"pipeline {args[0]} works on one sequence; --seq was given 2 times (demo, demo_drift)" in r.stderr
