@@ -352,8 +352,9 @@ def simulate(
 
 @app.command()
 def report(
-    seqs: Annotated[str | None, typer.Option("--seqs", "--seq", "-s", help="sequences to compare: a,b,... or globs "
-                                             "('sim_*') over the run folders")] = None,
+    seqs_: Annotated[list[str] | None, typer.Option(
+        "--seqs", "--seq", "-s", help="sequences to compare: a,b,... or globs ('sim_*') over the run folders; repeat "
+        "it for more")] = None,
     runs_dir: RunsOpt = None,
     out_file: Annotated[Path | None, typer.Option("--out", help="also write the tables as markdown (and the "
                                                   "combined metrics as .parquet beside it)")] = None,
@@ -361,6 +362,7 @@ def report(
                                               "instead; run sweeps with `pipeline sweep NAME --seq SEQ`")] = None,
 ) -> None:
     """Gather the evaluate results of several runs (or of a sweep) into one comparison table."""
+    seqs = seq_spec(seqs_)
     from pipeline import report as rep
 
     runs = runs_dir or default_runs_dir()
@@ -388,11 +390,11 @@ def report(
 
 @app.command()
 def train(
-    seqs: Annotated[str | None, typer.Option("--seqs", "-s", help="sequences for the patch pairs: a,b,... or "
-                                             "globs (or --maps)")] = None,
-    test_seqs: Annotated[str | None, typer.Option("--test-seqs", help="held-out sequences (not trained on; their "
-                                                  "patch CD is logged per epoch); 'none' for no held-out set; "
-                                                  "default: RMap's split of --seqs by run index")] = None,
+    seqs_: Annotated[list[str] | None, typer.Option("--seqs", "-s", help="sequences for the patch pairs: a,b,... "
+                                                    "or globs (or --maps); repeat it for more")] = None,
+    test_seqs_: Annotated[list[str] | None, typer.Option(
+        "--test-seqs", help="held-out sequences (not trained on; their patch CD is logged per epoch); 'none' for no "
+        "held-out set; default: RMap's split of --seqs by run index; repeat it for more")] = None,
     size: Annotated[str, typer.Option("--size", help="model size: small (CPU) or paper")] = "small",
     epochs: Annotated[int, typer.Option("--epochs", help="epochs (paper: 100)")] = 100,
     batch_size: Annotated[int, typer.Option("--batch-size", help="patches per step (paper: 16)")] = 16,
@@ -437,6 +439,8 @@ def train(
     """Train the completion network (RMap Sec. III-D) on the patches of --seqs or a map set (--maps); writes a
     checkpoint, its curve and history every epoch."""
     from stages.complete.train_cli import TrainRequest, run_training
+
+    seqs, test_seqs = seq_spec(seqs_), seq_spec(test_seqs_)
 
     registry = load_stages()
     runs = _runs_dir(runs_dir, write=True)

@@ -197,3 +197,5 @@ def test_a_repeated_seq_adds_sequences_and_a_one_sequence_command_refuses_it(tmp
         r = cli(*args, "--seq", "demo", "--seq", "demo_drift", "--runs-dir", str(tmp_path))
         assert r.returncode == 2 and r.stderr.count("\n") == 1
         assert f"pipeline {args[0]} works on one sequence; --seq was given 2 times (demo, demo_drift)" in r.stderr
+    r = cli("report", "--seqs", "demo", "--seqs", "demo_drift", "--runs-dir", str(tmp_path))
+    assert r.returncode == 2 and "no evaluation results for demo, demo_drift in" in r.stderr
