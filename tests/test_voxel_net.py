@@ -292,6 +292,19 @@ def test_gate_rule_takes_the_lowest_gate_that_passes_the_union_rule(tmp_path) ->
     assert load_voxel_checkpoint(path)[1].union_gate == 0.25
 
 
+def test_the_checkpoints_own_output_row_follows_its_union_and_gate() -> None:
+    """``output_row`` names the Table III row that ``complete.model = voxel`` writes (the benchmark quotes it):
+    the model alone, the plain union, or the gated union, as the checkpoint's metadata says."""
+    from stages.complete.voxel_table3 import ROWS, gate_row, output_row
+
+    assert output_row({}) == output_row({"union": None}) == "voxel"
+    assert output_row({"union": {"radar": False, "gate": 0.0}}) == "voxel"
+    assert output_row({"union": {"radar": True, "gate": 0.0}}) == "voxel + prefiltered radar" and \
+        "voxel + prefiltered radar" in ROWS
+    gated = output_row({"union": {"radar": True, "gate": 0.01}})
+    assert gated == gate_row(0.01) == "voxel + prefiltered radar, gate 0.01"
+
+
 def test_subvoxel_points_follow_the_neighbourhood_centroid() -> None:
     """``subvoxel_points`` (stop 45): strength 0 is ``key_centres`` to the bit; a random prediction's offsets
     equal a brute-force probability-weighted centroid of the 27 neighbours; a voxel with one believed neighbour

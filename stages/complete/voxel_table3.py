@@ -68,6 +68,15 @@ def gate_row(gate: float) -> str:
     return f"voxel + prefiltered radar, gate {gate:.2f}"
 
 
+def output_row(table: dict[str, Any]) -> str:
+    """The row of :func:`run_table`'s ``table`` that is the checkpoint's own output, as ``complete.model = voxel``
+    writes it: the model alone, its plain union with the pre-filtered radar, or its gated union."""
+    union = table.get("union")
+    if not union or not union["radar"]:
+        return "voxel"
+    return gate_row(union["gate"]) if union["gate"] > 0 else "voxel + prefiltered radar"
+
+
 def subvoxel_row(strength: float) -> str:
     """The row of the checkpoint's own output placed off the lattice (:func:`voxel_net.subvoxel_points`)."""
     return f"voxel output, sub-voxel {strength:g}"
