@@ -207,3 +207,12 @@ def test_nothing_to_export(tmp_path: Path) -> None:
     (tmp_path / "afile").write_text("")
     with pytest.raises(UserError, match=r"--out .*afile/sub: cannot create the folder"):
         export(write_run(tmp_path / "z"), "tum", tmp_path / "afile" / "sub")
+
+
+def test_a_tum_export_before_the_slam_stage_says_that_no_filter_trajectory_is_there(tmp_path: Path) -> None:
+    written, notes = run_export(write_run(tmp_path / "runs"), "tum", tmp_path / "out")
+    assert sorted(p.name for p in written) == ["groundtruth.tum", "odometry.tum"]
+    said = [n for n in notes if n.startswith("no SLAM trajectory")]
+    assert len(said) == 1 and "pipeline run slam --seq s" in said[0]
+    _, notes = run_export(write_run(tmp_path / "runs2", slam=True), "tum", tmp_path / "out2")
+    assert not any(n.startswith("no SLAM trajectory") for n in notes)
