@@ -22,7 +22,7 @@ from pipeline.paths import default_runs_dir
 from pipeline.profile_cli import app as profile_app
 from pipeline.registry import STAGE_NAMES, load_stages
 from pipeline.runner import Runner, StageOutcome, StagesFailed
-from pipeline.sequences import SequenceInfo, expand_sequences, load_registry, source_sequence
+from pipeline.sequences import SequenceInfo, expand_sequences, load_registry, seq_spec, source_sequence
 from pipeline.store import RunStore
 from pipeline.sweep import command as sweep_command
 from pipeline.tables import Column, print_listing
@@ -57,11 +57,6 @@ def _sequences(seq: str | None, source: Path | None, dataset: str) -> list[Seque
     if not seq:
         raise UserError("--seq is required (see `pipeline sequences`), or pass --source PATH")
     return expand_sequences(seq, load_registry())
-
-
-def seq_spec(values: list[str] | None) -> str | None:
-    """Repeated ``--seq`` options as one sequence spec (``a,b``); None when none was given."""
-    return ",".join(values) if values else None
 
 
 def one_seq(values: list[str], command: str) -> str:

@@ -116,11 +116,11 @@ def estimates(store: RunStore, note: Note = _warn) -> list[Trajectory]:
     if odo is not None:
         out.append(odo)
     slam_dir = store.stage_dir("slam")
-    if not any(slam_dir.glob("trajectory*.parquet")):
+    files = {f.stem.removeprefix("trajectory").lstrip("_"): f for f in sorted(slam_dir.glob("trajectory*.parquet"))}
+    if not files:
         note(f"no SLAM trajectory in {slam_dir}, so none is exported; `pipeline run slam --seq {store.seq}` "
              f"writes the filters' trajectories")
         return out
-    files = {f.stem.removeprefix("trajectory").lstrip("_"): f for f in sorted(slam_dir.glob("trajectory*.parquet"))}
     main = files.pop("", None)
     if main is not None and not files:  # only the main method's copy: name it after the method
         manifest = store.read_manifest("slam") or {}

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import fnmatch
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -184,6 +185,11 @@ def get_sequence(name: str, registry: dict[str, SequenceInfo] | None = None) -> 
             f"or pass --source PATH for unregistered data)"
         )
     return registry[name]
+
+
+def seq_spec(values: Sequence[str] | None) -> str | None:
+    """Repeated ``--seq`` options as one sequence spec (``a,b``); None when none was given."""
+    return ",".join(values) if values else None
 
 
 def expand_sequences(pattern: str, registry: dict[str, SequenceInfo] | None = None) -> list[SequenceInfo]:

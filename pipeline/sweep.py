@@ -277,11 +277,11 @@ def command(
     from pipeline.executors import make_executor
     from pipeline.paths import default_runs_dir
     from pipeline.registry import load_stages
-    from pipeline.sequences import expand_sequences, load_registry
+    from pipeline.sequences import expand_sequences, load_registry, seq_spec
 
     console = Console(stderr=True)
     overrides = parse_set(set_ or [], load_stages())
-    seqs = expand_sequences(",".join(seq) if seq else "demo", load_registry())
+    seqs = expand_sequences(seq_spec(seq) or "demo", load_registry())
     ex = make_executor(executor, workers) if executor else None
     res = run_sweep(workflow, seqs, runs_dir or default_runs_dir(), overrides, ex, console, force=force)
     failed = [r for r in res.results if not r.ok]
