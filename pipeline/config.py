@@ -106,13 +106,25 @@ def parse_set(items: Iterable[str], registry: Mapping[str, Stage]) -> Overrides:
     return out
 
 
+LISTED_PARAMETERS = 12
+
+
+def parameter_listing(stage: str, names: Sequence[str]) -> str:
+    """The stage's parameter names when they fit on a line, else where to read them."""
+    if not names:
+        return "parameters: none"
+    if len(names) <= LISTED_PARAMETERS:
+        return f"parameters: {', '.join(names)}"
+    return f"{len(names)} parameters: `pipeline params {stage}` lists them with their defaults"
+
+
 def check_param_names(stage: str, values: Mapping[str, Any], registry: Mapping[str, Stage], source: str) -> None:
     fields = registry[stage].Params.model_fields
     for param in values:
         if param not in fields:
             close = difflib.get_close_matches(param, list(fields), n=1, cutoff=0.6)
             hint = f"; did you mean '{stage}.{close[0]}'?" if close else ""
-            listing = "" if hint else f" (parameters: {', '.join(fields) or 'none'})"
+            listing = "" if hint else f" ({parameter_listing(stage, list(fields))})"
             raise UserError(f"{source}: unknown parameter '{stage}.{param}'{hint}{listing}")
 
 

@@ -35,6 +35,19 @@ def test_parse_set_errors() -> None:
         parse_set(["square.zzz=2"], reg)
 
 
+def test_a_long_parameter_list_points_to_the_params_command() -> None:
+    from pipeline.registry import load_stages
+
+    reg = load_stages()
+    n = len(reg["slam"].Params.model_fields)
+    assert n > 12
+    with pytest.raises(UserError) as err:
+        parse_set(["slam.qqqqqqqq=2"], reg)
+    message = str(err.value)
+    assert message == (f"--set: unknown parameter 'slam.qqqqqqqq' ({n} parameters: "
+                       "`pipeline params slam` lists them with their defaults)")
+
+
 def test_type_errors_name_the_parameter_and_source(tmp_path: Path) -> None:
     reg = toy_stages.registry()
     seq = SequenceInfo(name="s", kind="source", source=tmp_path)
