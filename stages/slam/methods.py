@@ -40,11 +40,13 @@ from stages.slam.rbpf import (
 )
 from stages.slam.submaps import HybridParticleMaps, SubmapModel, SubmapParticleMaps
 
-Method = Literal["odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only",
+Method = Literal["odometry", "radar_graph", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only",
                  "rich_slam_refined", "rich_slam_paper"]
-METHODS: tuple[Method, ...] = ("odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only",
-                               "rich_slam_refined", "rich_slam_paper")
+METHODS: tuple[Method, ...] = ("odometry", "radar_graph", "fastslam_grid", "rich_slam", "rich_slam_no_et",
+                               "rich_slam_mean_only", "rich_slam_refined", "rich_slam_paper")
 HILBERT_METHODS = ("rich_slam", "rich_slam_no_et", "rich_slam_mean_only", "rich_slam_refined", "rich_slam_paper")
+#: methods that are not particle filters (:mod:`pose_graph`; the slam stage runs them on their own inputs)
+GRAPH_METHODS = ("radar_graph",)
 #: the paper's configuration (Sec. IV): the fixed GMapping-form proposal, no bias state, one global map
 PAPER_METHODS = ("rich_slam_paper",)
 #: the paper's endpoint tolerance radius r_e (m, Sec. IV-D2: "we set r_e = 0.25 m"), which ``rich_slam_paper`` keeps

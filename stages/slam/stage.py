@@ -34,6 +34,7 @@ from stages.slam.grid_map import GridModel
 from stages.slam.heading_fusion import HeadingFusion
 from stages.slam.map_consistency import MapConsistency
 from stages.slam.methods import (
+    GRAPH_METHODS,
     HILBERT_METHODS,
     METHODS,
     PAPER_METHODS,
@@ -46,8 +47,10 @@ from stages.slam.methods import (
     domain_from_trajectory,
     run_method,
 )
+from stages.slam.pose_graph import GraphModel, GraphResult, optimise_graph
 from stages.slam.pose_refinement import PoseRefinement
 from stages.slam.rbpf import MotionNoise, WideMode, YawBias
+from stages.slam.registration import MatcherModel
 from stages.slam.submaps import SubmapModel
 
 F64 = npt.NDArray[np.floating[Any]]
@@ -245,6 +248,33 @@ class SlamParams(StageParams):
     fusion_alpha_guard: float = Field(0.0, ge=0, description="estimate = fused: the chosen scale stands only if "
                                       "its criterion beats the odometry's by more than this many standard errors "
                                       "over 10 s blocks of the run, else the odometry stays (stop 55; 0: off)")
+    # -- radar_graph: keyframe pose graph (stages/slam/pose_graph.py; settings chosen on the calibration runs)
+    graph_max_range: float = Field(10.0, gt=0, description="radar_graph: endpoints up to this range (m) enter the "
+                                   "keyframe clouds (longer than max_range, the Hilbert map's: more structure)")
+    graph_keyframe_distance: float = Field(1.0, gt=0, description="radar_graph: a keyframe every this many metres "
+                                           "of odometry travel")
+    graph_keyframe_angle: float = Field(15.0, gt=0, description="radar_graph: or every this many degrees turned")
+    graph_local_keyframes: int = Field(10, ge=1, le=1000, description="radar_graph: keyframes in a local map "
+                                       "(registration and loop verification)")
+    graph_registration: bool = Field(False, description="radar_graph: a factor from each keyframe registered "
+                                     "against the keyframes before it (off: measured biased on the calibration "
+                                     "runs, stages/slam/README.md)")
+    graph_yaw_rate_sigma: float = Field(0.03, ge=0, description="radar_graph: rad/s of gyro bias the odometry's "
+                                        "covariance does not hold, added to each odometry factor's yaw variance")
+    graph_loop_radius: float = Field(3.0, gt=0, description="radar_graph: keyframes this close on the odometry "
+                                     "are loop candidates, and the verification's translation search (m)")
+    graph_loop_min_travel: float = Field(15.0, gt=0, description="radar_graph: path length between the two "
+                                         "keyframes of a loop candidate (m)")
+    graph_loop_search_yaw: float = Field(20.0, gt=0, le=180, description="radar_graph: the loop verification's "
+                                         "yaw search (+- deg)")
+    graph_loop_min_inliers: float = Field(0.6, gt=0, le=1, description="radar_graph: share of a cloud's points "
+                                          "within 0.3 m of the other for a closure to be proposed")
+    graph_robust: Literal["gnc", "none"] = Field("gnc", description="radar_graph: graduated non-convexity (GTSAM, "
+                                                 "truncated quadratic) on the loop closures, or plain least squares")
+    graph_match_sigma: float = Field(0.15, gt=0, description="radar_graph: the likelihood field's std (m)")
+    graph_match_temperature: float = Field(30.0, gt=0, description="radar_graph: divides the summed point "
+                                           "log-likelihood in the registration covariance (points are not "
+                                           "independent; chosen for a NEES near 3 on the calibration runs)")
     # -- FastSLAM grid baseline
     grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
     grid_l_occ: float = Field(0.85, gt=0, description="fastslam_grid log-odds added at an endpoint cell")
@@ -320,6 +350,16 @@ class SlamParams(StageParams):
         """The submaps' geometry (their samples reach max_range plus the endpoint tolerance)."""
         return SubmapModel(self.submap_half_width, self.submap_n_basis, self.max_range + self.endpoint_tolerance,
                            keep_closed=self.submap_keep_closed)
+
+    def graph_model(self) -> GraphModel:
+        """radar_graph's parameter object (:class:`pose_graph.GraphModel`)."""
+        return GraphModel(
+            keyframe_distance=self.graph_keyframe_distance, keyframe_angle_deg=self.graph_keyframe_angle,
+            local_keyframes=self.graph_local_keyframes, registration=self.graph_registration,
+            yaw_rate_sigma=self.graph_yaw_rate_sigma, loop_radius=self.graph_loop_radius,
+            loop_min_travel=self.graph_loop_min_travel, loop_search_yaw_deg=self.graph_loop_search_yaw,
+            loop_min_inliers=self.graph_loop_min_inliers, robust=self.graph_robust,
+            matcher=MatcherModel(sigma=self.graph_match_sigma, temperature=self.graph_match_temperature))
 
     def config(self) -> SlamConfig:
         return SlamConfig(
@@ -398,11 +438,18 @@ class SlamStage(Stage):
         methods = [p.method, *[m for m in dict.fromkeys(p.methods) if m != p.method]]
         tracker = MapTracker(basis, cfg, p, samples, scans, t_ns, ctx)
         results: dict[str, MethodResult] = {}
+        graphs: dict[str, GraphResult] = {}
         with ctx.progress(len(methods) * len(scans), "methods") as advance:
             for m in methods:
                 local = cfg.for_method(m).submaps is not None  # no global map to track: replayed below
                 obs = tracker.observe if (m == p.method and m in HILBERT_METHODS and not local) else None
-                res = run_method(m, odo, samples, basis, cfg, p.seed, observer=obs, on_step=advance, motion=motion)
+                if m in GRAPH_METHODS:
+                    res, graph = run_graph(ctx, p, odo, inc_cov, t_ns, scans, base_from_radar)
+                    graphs[m] = graph
+                    advance(len(scans))
+                else:
+                    res = run_method(m, odo, samples, basis, cfg, p.seed, observer=obs, on_step=advance,
+                                     motion=motion)
                 results[m] = res
                 write_trajectory(ctx.output(f"trajectory_{m}.parquet"), scans, t_ns, res)
                 # the fused estimate's scale of the fusion's correction (map_consistency): recorded and said
@@ -441,7 +488,19 @@ class SlamStage(Stage):
                                       + (f"; the best scale's gain: {res.fusion_alpha_evidence:.2f} standard errors "
                                          f"(guard {p.fusion_alpha_guard:g})"
                                          if res.fusion_alpha_evidence is not None else ""))
-                if m != "odometry":
+                if m in GRAPH_METHODS:
+                    g = graphs[m]
+                    ctx.stats["methods"][m].update({
+                        "keyframes": len(g.keyframes), "registration_factors": g.count("registration"),
+                        "registrations_failed": g.registrations_failed, "loops_proposed": g.count("loop"),
+                        "loops_accepted": g.count("loop", True), "loops_rejected": g.count("loop", False)})
+                    ctx.console.print(f"slam: {m}: {len(g.keyframes)} keyframes, {g.count('registration')} "
+                                      f"registration factors, loop closures {g.count('loop')} proposed / "
+                                      f"{g.count('loop', True)} accepted / {g.count('loop', False)} rejected")
+                    for w in g.warnings:
+                        ctx.warn(f"{m}: {w}")
+                    write_graph(ctx, g, scans, t_ns)
+                elif m != "odometry":
                     # the filter's own heading: the fused estimate leans on the odometry and would hide a divergence
                     own = res.estimates.get("smoothed", res.poses) if p.estimate == "fused" else res.poses
                     dev = heading_deviation(odo, own, inc_cov)
@@ -468,6 +527,8 @@ class SlamStage(Stage):
         write_artifact(grid, ctx.output("map_grid.parquet"), "map_grid", metadata={"grid_spacing": str(p.grid_spacing)})
         tracker.write(ctx.output("map_stats.parquet"))
         log_recording(ctx, scans, t_ns, results, p.method, tracker)
+        for g in graphs.values():
+            log_graph(ctx, g, scans, t_ns)
 
 
 # -- reading -----------------------------------------------------------------------------------------------------
@@ -543,6 +604,93 @@ def beam_samples_by_scan(point_scan: npt.NDArray[np.int64], xyz: F64, scans: npt
         pts, origin = radar_to_body_2d(xyz[a:b], base_from_radar, p.z_min, p.z_max)
         out.append(sample_beams(pts, origin, p.ray_step, p.max_range, p.min_range, p.free_clearance))
     return out
+
+
+# -- radar_graph ---------------------------------------------------------------------------------------------------
+
+
+def graph_endpoints(ctx: StageContext, scans: npt.NDArray[np.int64], base_from_radar: F64, p: SlamParams
+                    ) -> list[F64]:
+    """Each odometry scan's radar endpoints in the 2D base frame, within ``graph_max_range`` of the radar (and
+    beyond ``min_range``, inside the height gate)."""
+    path = ctx.input("filter", "radar_filtered.parquet")
+    t = read_artifact(path, "radar_filtered", columns=["scan", "x", "y", "z"])
+    xyz = np.stack([t[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], axis=1)
+    point_scan = t["scan"].to_numpy().astype(np.int64)
+    order = np.argsort(point_scan, kind="stable")
+    s, xyz = point_scan[order], xyz[order]
+    lo, hi = np.searchsorted(s, scans, side="left"), np.searchsorted(s, scans, side="right")
+    out = []
+    for a, b in zip(lo, hi, strict=True):
+        pts, origin = radar_to_body_2d(xyz[a:b], base_from_radar, p.z_min, p.z_max)
+        r = np.hypot(*(pts - origin).T) if len(pts) else np.zeros(0)
+        out.append(pts[(r <= p.graph_max_range) & (r >= p.min_range)])
+    return out
+
+
+def run_graph(ctx: StageContext, p: SlamParams, odo: F64, inc_cov: F64, t_ns: npt.NDArray[np.int64],
+              scans: npt.NDArray[np.int64], base_from_radar: F64) -> tuple[MethodResult, GraphResult]:
+    """radar_graph on the stage's inputs (a one-line error for a log too short or GTSAM missing)."""
+    import time
+
+    t0 = time.perf_counter()
+    endpoints = graph_endpoints(ctx, scans, base_from_radar, p)
+    try:
+        g = optimise_graph(odo, inc_cov, (t_ns - t_ns[0]) * 1e-9, endpoints, p.graph_model())
+    except ImportError as exc:
+        raise UserError(f"slam.methods includes radar_graph: {exc} (or leave radar_graph out of slam.methods and "
+                        "set slam.method to another method)") from None
+    except ValueError as exc:
+        raise UserError(f"{ctx.input('odometry', 'odometry.parquet')}: {exc}; lower slam.graph_keyframe_distance "
+                        "or leave radar_graph out of slam.methods") from None
+    res = MethodResult("radar_graph", g.poses, np.ones(len(g.poses)), time.perf_counter() - t0)
+    return res, g
+
+
+def write_graph(ctx: StageContext, g: GraphResult, scans: npt.NDArray[np.int64], t_ns: npt.NDArray[np.int64]
+                ) -> None:
+    """``graph_keyframes.parquet`` (the optimised keyframe poses and marginal covariances) and
+    ``graph_edges.parquet`` (every factor between keyframes: kind, keyframes, measurement, inlier share, whether
+    the optimiser kept it)."""
+    k = g.keyframes
+    pq.write_table(pa.table({
+        "keyframe": pa.array(np.arange(len(k)), pa.int32()), "scan": pa.array(scans[k], pa.int32()),
+        "t_ns": pa.array(t_ns[k], pa.int64()), "x": g.keyframe_poses[:, 0], "y": g.keyframe_poses[:, 1],
+        "yaw": g.keyframe_poses[:, 2], "cov_xx": g.keyframe_cov[:, 0, 0], "cov_yy": g.keyframe_cov[:, 1, 1],
+        "cov_yawyaw": g.keyframe_cov[:, 2, 2], "cov_xy": g.keyframe_cov[:, 0, 1],
+        "cov_xyaw": g.keyframe_cov[:, 0, 2], "cov_yyaw": g.keyframe_cov[:, 1, 2],
+    }), ctx.output("graph_keyframes.parquet"))
+    e = g.edges
+    pq.write_table(pa.table({
+        "kind": pa.array([x.kind for x in e], pa.string()), "from_keyframe": pa.array([x.i for x in e], pa.int32()),
+        "to_keyframe": pa.array([x.j for x in e], pa.int32()),
+        "dx": pa.array([float(x.z[0]) for x in e], pa.float64()), "dy": pa.array([float(x.z[1]) for x in e],
+                                                                             pa.float64()),
+        "dyaw": pa.array([float(x.z[2]) for x in e], pa.float64()),
+        "sigma_yaw_deg": pa.array([float(np.degrees(np.sqrt(x.cov[2, 2]))) for x in e], pa.float64()),
+        "inliers": pa.array([x.inliers for x in e], pa.float64()),
+        "accepted": pa.array([x.accepted for x in e], pa.bool_()),
+    }), ctx.output("graph_edges.parquet"))
+
+
+def log_graph(ctx: StageContext, g: GraphResult, scans: npt.NDArray[np.int64], t_ns: npt.NDArray[np.int64]) -> None:
+    """Keyframes and loop-closure edges (accepted green, rejected red) on the ``scan`` timeline, each edge from
+    the scan of its later keyframe on."""
+    import rerun as rr
+
+    rec = ctx.recording
+    P = g.keyframe_poses
+    k = g.keyframes
+    xyz = np.column_stack([P[:, :2], np.zeros(len(P))])
+    rec.points_over_time("world/slam/graph/keyframes", scans[k], t_ns[k], xyz, np.ones(len(k), dtype=np.int64),
+                         radii=0.08)
+    for e in g.edges:
+        if e.kind != "loop":
+            continue
+        seg = np.array([[P[e.i, 0], P[e.i, 1], 0.0], [P[e.j, 0], P[e.j, 1], 0.0]])
+        rec.log(f"world/slam/graph/{'loops' if e.accepted else 'rejected_loops'}/{e.i}_{e.j}",
+                rr.LineStrips3D([seg], colors=[(40, 200, 80) if e.accepted else (230, 40, 40)]),
+                scan=int(scans[k[e.j]]), t_ns=int(t_ns[k[e.j]]))
 
 
 # -- map statistics and snapshots (Fig. 10, Rerun images) -------------------------------------------------------------
@@ -670,7 +818,8 @@ def log_recording(ctx: StageContext, scans: npt.NDArray[np.int64], t_ns: npt.NDA
     import rerun as rr
 
     rec = ctx.recording
-    colors = {"odometry": (70, 130, 255), "fastslam_grid": (60, 200, 90), "rich_slam": (230, 50, 50),
+    colors = {"odometry": (70, 130, 255), "radar_graph": (250, 250, 80), "fastslam_grid": (60, 200, 90),
+              "rich_slam": (230, 50, 50),
               "rich_slam_no_et": (170, 80, 220), "rich_slam_mean_only": (240, 160, 40)}
     for m, res in results.items():
         xyz = np.column_stack([res.poses[:, :2], np.zeros(len(res.poses))])

@@ -50,7 +50,9 @@ from stages.slam.heading_fusion import HeadingFusion
 from stages.slam.map_consistency import MapConsistency
 from stages.slam.methods import (
     ESTIMATES,
+    GRAPH_METHODS,
     METHODS,
+    MethodResult,
     OdometryMotion,
     domain_from_trajectory,
     fused_estimate,
@@ -59,6 +61,7 @@ from stages.slam.methods import (
     informed_fusion,
     run_method,
 )
+from stages.slam.pose_graph import optimise_graph
 from stages.slam.stage import SlamParams, beam_samples_by_scan, read_odometry_file
 from stages.slam.unit_study import read_run_folder
 
@@ -276,7 +279,11 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
         anchored = groundtruth_anchored(run_dir)
         for m, s in todo:
             t0 = time.perf_counter()
-            res = run_method(m, odo, samples, basis, cfg, s, motion=motion)
+            graph_counts: dict[str, int] = {}
+            if m in GRAPH_METHODS:
+                res, graph_counts = run_graph_method(run_dir, p, overrides, t_ns, odo, motion)
+            else:
+                res = run_method(m, odo, samples, basis, cfg, s, motion=motion)
             seconds = time.perf_counter() - t0
             own = cfg.for_method(m).estimate  # the estimate the method ran with (rich_slam_paper: its own)
             extra = [e for e in estimates if e != own and m != "odometry"]
@@ -289,7 +296,7 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                 est = np.asarray(res.estimates[est_name], np.float64)
                 row = {"seq": run_dir.name, "method": label, "seed": s, "config": row_config,
                        **error_fields(t_ns, est, truth), "s_per_scan": seconds / len(odo),
-                       "resamplings": res.resampled, "scans": len(odo)}
+                       "resamplings": res.resampled, "scans": len(odo), **graph_counts}
                 if est_name == "fused" and res.fusion_alpha is not None and cfg.consistency.alpha_max > 0:
                     row["fusion_alpha"] = res.fusion_alpha
                     if res.fusion_alpha_evidence is not None:
@@ -309,6 +316,19 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                     save_trajectory(keep, run_dir.name, label, s, row_config, t_ns, est, truth, est_name)
                 append_row(out, row)
                 say_row(row, f"{row['s_per_scan']:.3f} s/scan")
+
+
+def run_graph_method(run_dir: Path, p: SlamParams, overrides: dict[str, Any], t_ns: npt.NDArray[np.int64], odo: F64,
+                     motion: OdometryMotion) -> tuple[MethodResult, dict[str, int]]:
+    """radar_graph on a run folder, as the slam stage runs it (endpoints to ``graph_max_range``): its result and
+    the loop-closure counts of the row."""
+    wide = SlamParams(**{**overrides, "max_range": p.graph_max_range})
+    endpoints = [b.endpoints for b in load_inputs(run_dir, wide)[2]]
+    g = optimise_graph(odo, motion.cov, (t_ns - t_ns[0]) * 1e-9, endpoints, p.graph_model())
+    counts = {"keyframes": len(g.keyframes), "loops_proposed": g.count("loop"),
+              "loops_accepted": g.count("loop", True), "loops_rejected": g.count("loop", False)}
+    return MethodResult("radar_graph", g.poses, np.ones(len(g.poses)), 0.0,
+                        estimates=dict.fromkeys(ESTIMATES, g.poses)), counts
 
 
 def trajectory_file(keep: Path, seq: str, label: str, seed: int, config: str) -> Path:

@@ -1,0 +1,349 @@
+"""`radar_graph`: a keyframe pose graph with radar registration and verified loop closures. Pure numpy + GTSAM.
+
+The odometry (EKF-RIO) gives keyframes by distance and angle travelled and a relative-pose factor between
+consecutive keyframes with its own increment covariance, propagated along the scans. Each keyframe holds the
+radar endpoints of the scans nearest to it, accumulated along the odometry into the keyframe's frame (single TI
+scans hold 30-100 points). A front end registers each keyframe's cloud against a local map of the preceding
+keyframes (:mod:`registration`, a correlative scan matcher whose search gives the covariance): a registration
+factor between consecutive keyframes. Loop closures are proposed between keyframes that are close in the front
+end's estimate but far apart along the path, verified by registration with a wide yaw search, and optimised with
+graduated non-convexity (GTSAM's GNC with a truncated quadratic, the odometry and registration factors known
+inliers), which drops a wrong closure. Every scan's pose is its odometry pose moved by the correction of its two
+keyframes, interpolated on SE(2).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from stages.slam.registration import MatcherModel, match
+from stages.slam.se2 import wrap_angle
+
+F64 = npt.NDArray[np.floating[Any]]
+I64 = npt.NDArray[np.int64]
+
+GTSAM_INSTALL = "pip install gtsam"
+
+
+@dataclass(frozen=True)
+class GraphModel:
+    """Keyframes, registration, loop closures and the optimiser of :func:`optimise_graph`."""
+
+    keyframe_distance: float = 1.0  # m travelled between keyframes
+    keyframe_angle_deg: float = 15.0  # or this much turned
+    local_keyframes: int = 10  # keyframes in the local map a keyframe is registered against
+    search_xy: float = 0.5  # m, the front end's translation search around the odometry's guess
+    search_yaw_deg: float = 5.0  # the front end's yaw search
+    min_points: int = 30  # a keyframe cloud with fewer endpoints gets no registration factor
+    min_inliers: float = 0.5  # share of a cloud's points matched for a registration to stand
+    loop_radius: float = 3.0  # m: keyframes this close in the front end's estimate are loop candidates
+    loop_min_travel: float = 15.0  # m travelled between the two keyframes of a loop candidate
+    loop_search_yaw_deg: float = 20.0  # the loop closure's yaw search
+    loop_min_inliers: float = 0.6  # share of points matched for a closure to be proposed
+    loop_every: int = 2  # keyframes between loop searches of the same place
+    robust: Literal["gnc", "none"] = "gnc"
+    yaw_rate_sigma: float = 0.03  # rad/s: an unmodelled gyro bias, added to the odometry factors' yaw variance
+    registration: bool = False  # factors from each keyframe registered against the keyframes before it
+    matcher: MatcherModel = field(default_factory=MatcherModel)
+
+
+@dataclass(frozen=True)
+class Edge:
+    """A factor between keyframes ``i`` and ``j``: relative pose ``z`` (pose of ``j`` in ``i``'s frame)."""
+
+    kind: Literal["odometry", "registration", "loop"]
+    i: int
+    j: int
+    z: F64  # (3,)
+    cov: F64  # (3, 3) in j's body frame
+    inliers: float = 1.0
+    accepted: bool = True
+
+
+@dataclass
+class GraphResult:
+    """The optimised trajectory at every scan, the keyframes and the graph's edges."""
+
+    poses: F64  # (T, 3) every scan
+    keyframes: I64  # (K,) scan indices of the keyframes
+    keyframe_poses: F64  # (K, 3) optimised
+    keyframe_cov: F64  # (K, 3, 3) marginal covariances (body frame)
+    edges: list[Edge]
+    registrations_failed: int = 0
+    warnings: list[str] = field(default_factory=list)
+
+    def count(self, kind: str, accepted: bool | None = None) -> int:
+        return sum(e.kind == kind and (accepted is None or e.accepted == accepted) for e in self.edges)
+
+
+# -- SE(2) on arrays ------------------------------------------------------------------------------------------------
+
+
+def between(a: F64, b: F64) -> F64:
+    """``a^-1 b`` for poses ``(..., 3)``."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1)
+
+
+def compose(a: F64, d: F64) -> F64:
+    """``a d`` for poses ``(..., 3)``."""
+    a, d = np.asarray(a, np.float64), np.asarray(d, np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack([a[..., 0] + c * d[..., 0] - s * d[..., 1], a[..., 1] + s * d[..., 0] + c * d[..., 1],
+                     wrap_angle(a[..., 2] + d[..., 2])], axis=-1)
+
+
+def transform(pose: F64, points: F64) -> F64:
+    """Points ``(N, 2)`` in ``pose``'s frame to the parent frame."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return points @ np.array([[c, s], [-s, c]]) + pose[:2]
+
+
+def adjoint(d: F64) -> F64:
+    """GTSAM's ``Pose2::AdjointMap`` of the pose ``d`` (tangent order x, y, yaw)."""
+    c, s = np.cos(d[2]), np.sin(d[2])
+    return np.array([[c, -s, d[1]], [s, c, -d[0]], [0.0, 0.0, 1.0]])
+
+
+def propagate(increments: F64, cov: F64) -> tuple[F64, F64]:
+    """Compose body-frame ``increments (n, 3)`` with covariances ``cov (n, 3, 3)`` (each in the body frame after
+    its increment): the total and its covariance in the final body frame (``xi_n = Ad(d_n^-1) xi_n-1 + eta_n``)."""
+    total: F64 = np.zeros(3)
+    sigma: F64 = np.zeros((3, 3))
+    for d, c in zip(increments, cov, strict=True):
+        A = adjoint(between(d, np.zeros(3)))
+        sigma = A @ sigma @ A.T + c
+        total = compose(total, d)
+    return total, sigma
+
+
+def world_cov_to_body(pose: F64, cov: F64) -> F64:
+    """A covariance of (x, y in the parent frame, yaw) to the body frame at ``pose``."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return R @ cov @ R.T
+
+
+# -- keyframes -------------------------------------------------------------------------------------------------------
+
+
+def select_keyframes(odometry: F64, distance: float, angle_deg: float) -> I64:
+    """Scan indices of the keyframes: the first scan, then each scan past ``distance`` metres or ``angle_deg``
+    degrees of odometry motion from the previous keyframe."""
+    keys = [0]
+    ang = np.radians(angle_deg)
+    for i in range(1, len(odometry)):
+        k = odometry[keys[-1]]
+        if (np.hypot(*(odometry[i, :2] - k[:2])) >= distance
+                or abs(wrap_angle(odometry[i, 2] - k[2])) >= ang):
+            keys.append(i)
+    return np.asarray(keys, dtype=np.int64)
+
+
+def keyframe_clouds(odometry: F64, endpoints: Sequence[F64], keyframes: I64, resolution: float) -> list[F64]:
+    """Each keyframe's cloud in its own frame: the endpoints of the scans nearer to it (by index) than to another
+    keyframe, moved along the odometry, thinned to one point per ``resolution`` cell."""
+    T = len(odometry)
+    bounds = np.r_[0, (keyframes[1:] + keyframes[:-1] + 1) // 2, T]
+    out = []
+    for k, kf in enumerate(keyframes):
+        parts = [transform(between(odometry[kf], odometry[s]), endpoints[s])
+                 for s in range(bounds[k], bounds[k + 1]) if len(endpoints[s])]
+        pts = np.concatenate(parts) if parts else np.zeros((0, 2))
+        if len(pts):
+            _, first = np.unique(np.round(pts / resolution).astype(np.int64), axis=0, return_index=True)
+            pts = pts[np.sort(first)]
+        out.append(pts)
+    return out
+
+
+def odometry_edges(odometry: F64, cov: F64, keyframes: I64, t_s: F64, yaw_rate_sigma: float) -> list[Edge]:
+    """Relative-pose factors between consecutive keyframes: the odometry's increments between them, their
+    covariance propagated from the per-scan increment covariances ``cov (T, 3, 3)`` (row i: into scan i), plus
+    ``(yaw_rate_sigma dt)^2`` on the yaw for a gyro bias the odometry's covariance does not hold (``t_s``: scan
+    times in seconds)."""
+    edges = []
+    for k in range(1, len(keyframes)):
+        a, b = int(keyframes[k - 1]), int(keyframes[k])
+        inc = between(odometry[a:b], odometry[a + 1:b + 1])
+        _, sigma = propagate(inc, cov[a + 1:b + 1])
+        z = between(odometry[a], odometry[b])
+        dt = float(t_s[b] - t_s[a])
+        sigma = 0.5 * (sigma + sigma.T) + np.diag([1e-8, 1e-8, 1e-10 + (yaw_rate_sigma * dt) ** 2])
+        edges.append(Edge("odometry", k - 1, k, z, sigma))
+    return edges
+
+
+# -- front end and loop closures -------------------------------------------------------------------------------------
+
+
+def local_cloud(poses: F64, clouds: list[F64], centre: int, members: range) -> F64:
+    """The clouds of keyframes ``members`` placed by ``poses`` and expressed in keyframe ``centre``'s frame."""
+    parts = [transform(between(poses[centre], poses[i]), clouds[i]) for i in members if len(clouds[i])]
+    return np.concatenate(parts) if parts else np.zeros((0, 2))
+
+
+def registration_edges(poses: F64, clouds: list[F64], model: GraphModel) -> tuple[list[Edge], int]:
+    """Each keyframe registered against a local map of the ``local_keyframes`` before it, all placed by the
+    odometry (``poses``), with the odometry's relative pose as the guess: a factor between consecutive keyframes,
+    and the number of keyframes whose registration did not stand."""
+    edges: list[Edge] = []
+    failed = 0
+    for k in range(1, len(poses)):
+        ref = local_cloud(poses, clouds, k - 1, range(max(0, k - model.local_keyframes), k))
+        q = clouds[k]
+        if len(q) < model.min_points or len(ref) < model.min_points:
+            failed += 1
+            continue
+        m = match(ref, q, between(poses[k - 1], poses[k]), model.matcher, model.search_xy, model.search_yaw_deg)
+        if m.inliers < model.min_inliers:
+            failed += 1
+            continue
+        edges.append(Edge("registration", k - 1, k, m.pose, world_cov_to_body(m.pose, m.cov), m.inliers))
+    return edges, failed
+
+
+def travelled(keyframe_poses: F64) -> F64:
+    """Cumulative path length at each keyframe (m)."""
+    return np.r_[0.0, np.cumsum(np.hypot(*np.diff(keyframe_poses[:, :2], axis=0).T))]
+
+
+def loop_closures(poses: F64, clouds: list[F64], model: GraphModel) -> list[Edge]:
+    """Closures proposed and verified on the odometry's keyframe poses: for every keyframe (at most one closure
+    per ``loop_every`` keyframes), the nearest earlier keyframe within ``loop_radius`` that lies
+    ``loop_min_travel`` or more back along the path; the local cloud around the keyframe (``local_keyframes``
+    centred on it) is matched against the one around the candidate, with a wide yaw search. One whose inlier share
+    reaches ``loop_min_inliers`` is proposed; the optimiser may still reject it."""
+    s = travelled(poses)
+    out: list[Edge] = []
+    half = max(1, model.local_keyframes // 2)
+    last_closed = -(10**9)
+    K = len(poses)
+    for k in range(K):
+        if k - last_closed < model.loop_every:
+            continue
+        far = np.flatnonzero(s[k] - s[: k + 1] >= model.loop_min_travel)
+        if not len(far):
+            continue
+        d = np.hypot(*(poses[far, :2] - poses[k, :2]).T)
+        if d.min() > model.loop_radius:
+            continue
+        j = int(far[np.argmin(d)])
+        ref = local_cloud(poses, clouds, j, range(max(0, j - half), min(K, j + half + 1)))
+        q = local_cloud(poses, clouds, k, range(max(0, k - half), min(K, k + half + 1)))
+        if len(q) < model.min_points or len(ref) < model.min_points:
+            continue
+        m = match(ref, q, between(poses[j], poses[k]), model.matcher, model.loop_radius, model.loop_search_yaw_deg)
+        if m.inliers < model.loop_min_inliers:
+            continue
+        out.append(Edge("loop", j, k, m.pose, world_cov_to_body(m.pose, m.cov), m.inliers))
+        last_closed = k
+    return out
+
+
+# -- optimiser ------------------------------------------------------------------------------------------------------
+
+
+def import_gtsam() -> Any:
+    try:
+        import gtsam
+    except ImportError as exc:
+        raise ImportError(f"radar_graph needs GTSAM: {GTSAM_INSTALL}") from exc
+    return gtsam
+
+
+def optimise(initial: F64, edges: list[Edge], robust: Literal["gnc", "none"]) -> tuple[F64, F64, list[bool]]:
+    """Batch optimisation of the keyframe poses (the first held by a tight prior): the poses, their marginal
+    covariances and, per edge, whether the optimiser kept it (GNC's weight above one half; always for the
+    known inliers)."""
+    gtsam = import_gtsam()
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for k, p in enumerate(initial):
+        values.insert(k, gtsam.Pose2(*p))
+    graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*initial[0]),
+                                     gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-4, 1e-4, 1e-5]))))
+    for e in edges:
+        graph.add(gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.z), gtsam.noiseModel.Gaussian.Covariance(e.cov)))
+    loops = [n + 1 for n, e in enumerate(edges) if e.kind == "loop"]
+    kept = [True] * len(edges)
+    lm = gtsam.LevenbergMarquardtParams()
+    if loops and robust == "gnc":
+        params = gtsam.GncLMParams(lm)
+        params.setLossType(gtsam.GncLossType.TLS)
+        params.setKnownInliers([i for i in range(graph.size()) if i not in set(loops)])
+        opt = gtsam.GncLMOptimizer(graph, values, params)
+        result = opt.optimize()
+        w = np.asarray(opt.getWeights())
+        kept = [bool(w[n + 1] > 0.5) for n in range(len(edges))]
+        clean = gtsam.NonlinearFactorGraph()  # marginals of the graph without the rejected closures
+        for n in range(graph.size()):
+            if n == 0 or kept[n - 1]:
+                clean.add(graph.at(n))
+        graph = clean
+    else:
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, lm).optimize()
+    poses = np.array([[result.atPose2(k).x(), result.atPose2(k).y(), result.atPose2(k).theta()]
+                      for k in range(len(initial))])
+    try:
+        marg = gtsam.Marginals(graph, result)
+        cov = np.stack([marg.marginalCovariance(k) for k in range(len(initial))])
+    except RuntimeError:  # an indeterminate system (should not happen with the prior and the odometry chain)
+        cov = np.full((len(initial), 3, 3), np.nan)
+    return poses, cov, kept
+
+
+def interpolate(odometry: F64, keyframes: I64, keyframe_poses: F64) -> F64:
+    """Every scan's pose: its odometry pose moved by the correction ``X_k O_k^-1`` of its keyframes, interpolated
+    linearly (rotation and translation of the correction) between the two keyframes around it."""
+    inv = between(odometry[keyframes], np.zeros((len(keyframes), 3)))
+    corr = compose(keyframe_poses, inv)
+    idx = np.arange(len(odometry))
+    pos = np.interp(idx, keyframes, np.arange(len(keyframes)))
+    lo = np.clip(np.floor(pos).astype(int), 0, len(keyframes) - 1)
+    hi = np.clip(lo + 1, 0, len(keyframes) - 1)
+    t = (pos - lo)[:, None]
+    dyaw = wrap_angle(corr[hi, 2] - corr[lo, 2])
+    c = np.column_stack([corr[lo, :2] * (1 - t) + corr[hi, :2] * t, wrap_angle(corr[lo, 2] + t[:, 0] * dyaw)])
+    return compose(c, odometry)
+
+
+def optimise_graph(odometry: F64, cov: F64, t_s: F64, endpoints: Sequence[F64], model: GraphModel) -> GraphResult:
+    """``radar_graph`` on arrays: ``odometry (T, 3)`` world <- base poses at the scans, ``cov (T, 3, 3)`` their
+    increment covariances (row i: into scan i, body frame), ``t_s (T,)`` the scan times (s), ``endpoints`` each
+    scan's radar endpoints in the body frame (2D). Raises ValueError for a log too short for two keyframes."""
+    odometry = np.asarray(odometry, np.float64).reshape(-1, 3)
+    if not len(endpoints) == len(odometry) == len(cov) == len(t_s):
+        raise ValueError(f"radar_graph: {len(odometry)} odometry poses, {len(cov)} covariances, {len(t_s)} times and "
+                         f"{len(endpoints)} scans must agree")
+    import_gtsam()  # fail before the work when it is missing
+    keyframes = select_keyframes(odometry, model.keyframe_distance, model.keyframe_angle_deg)
+    warnings: list[str] = []
+    if len(keyframes) < 2:
+        raise ValueError(f"radar_graph: the odometry moves less than slam.graph_keyframe_distance = "
+                         f"{model.keyframe_distance} m and slam.graph_keyframe_angle = {model.keyframe_angle_deg} deg "
+                         "over the log: one keyframe, no graph")
+    clouds = keyframe_clouds(odometry, endpoints, keyframes, model.matcher.resolution)
+    odo = odometry_edges(odometry, cov, keyframes, np.asarray(t_s, np.float64), model.yaw_rate_sigma)
+    poses = odometry[keyframes]
+    reg, failed = registration_edges(poses, clouds, model) if model.registration else ([], 0)
+    if failed:
+        warnings.append(f"{failed} of {len(keyframes) - 1} keyframes got no registration factor (fewer than "
+                        f"slam.min_points = {model.min_points} endpoints or under slam.min_inliers = "
+                        f"{model.min_inliers} of them matched): the odometry alone links them")
+    loops = loop_closures(poses, clouds, model)
+    edges = [*odo, *reg, *loops]
+    opt, kcov, kept = optimise(poses, edges, model.robust)
+    edges = [Edge(e.kind, e.i, e.j, e.z, e.cov, e.inliers, k) for e, k in zip(edges, kept, strict=True)]
+    rejected = sum(e.kind == "loop" and not e.accepted for e in edges)
+    if rejected:
+        warnings.append(f"the optimiser rejected {rejected} of {len(loops)} loop closures (inconsistent with the "
+                        "rest of the graph); graph_edges.parquet lists them with accepted = false")
+    return GraphResult(interpolate(odometry, keyframes, opt), keyframes, opt, kcov, edges, failed, warnings)

@@ -1,0 +1,133 @@
+"""radar_graph: the correlative matcher, covariance propagation, the robust optimiser and the whole graph."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from stages.slam.pose_graph import (
+    Edge,
+    GraphModel,
+    between,
+    compose,
+    optimise,
+    optimise_graph,
+    propagate,
+    select_keyframes,
+    transform,
+)
+from stages.slam.registration import MatcherModel, match
+from stages.slam.synthetic import box_walls, corridor_world, make_run
+
+gtsam = pytest.importorskip("gtsam")
+
+
+def _wall_points(walls: np.ndarray, step: float = 0.05) -> np.ndarray:
+    out = []
+    for a, b in walls:
+        n = max(2, int(np.linalg.norm(b - a) / step))
+        out.append(a + np.linspace(0, 1, n)[:, None] * (b - a))
+    return np.concatenate(out)
+
+
+def test_propagate_matches_monte_carlo_composition() -> None:
+    rng = np.random.default_rng(0)
+    inc = rng.normal(size=(6, 3)) * [0.3, 0.1, 0.1]
+    cov = np.stack([np.diag(rng.uniform(0.001, 0.01, 3)) for _ in range(6)])
+    total, sigma = propagate(inc, cov)
+    n = 20000
+    poses = np.zeros((n, 3))
+    for d, c in zip(inc, cov, strict=True):
+        poses = compose(poses, compose(np.broadcast_to(d, (n, 3)), rng.multivariate_normal(np.zeros(3), c, n)))
+    err = np.array([gtsam.Pose2.Logmap(gtsam.Pose2(*total).between(gtsam.Pose2(*p))) for p in poses[:8000]])
+    np.testing.assert_allclose(np.cov(err.T), sigma, rtol=0.1, atol=2e-4)
+
+
+def test_matcher_recovers_a_known_offset_against_brute_force_truth() -> None:
+    rng = np.random.default_rng(1)
+    ref = _wall_points(corridor_world())
+    truth = np.array([0.32, -0.21, np.radians(3.5)])
+    q_world = ref[rng.choice(len(ref), 300, replace=False)] + rng.normal(0, 0.02, (300, 2))
+    query = transform(between(truth, np.zeros(3)), q_world)  # the query in its own (truth) frame
+    m = match(ref, query, np.zeros(3), MatcherModel(), search_xy=0.6, search_yaw_deg=6.0)
+    assert abs(m.pose[0] - truth[0]) <= 0.1 and abs(m.pose[1] - truth[1]) <= 0.1
+    assert abs(np.degrees(m.pose[2] - truth[2])) <= 0.75
+    assert m.inliers > 0.95
+
+
+def test_matcher_covariance_is_long_along_a_featureless_corridor() -> None:
+    """Two parallel walls constrain y and yaw, not x: the search's covariance says so."""
+    walls = np.concatenate([box_walls(-30, -1, 30, -1.0001), box_walls(-30, 1, 30, 1.0001)])
+    ref = _wall_points(walls)
+    query = ref[np.abs(ref[:, 0]) < 4]
+    m = match(ref, query, np.zeros(3), MatcherModel(temperature=5.0), search_xy=0.8, search_yaw_deg=4.0)
+    assert m.cov[0, 0] > 20 * m.cov[1, 1]
+    with pytest.raises(ValueError, match="no points"):
+        match(ref, np.zeros((0, 2)), np.zeros(3), MatcherModel(), 0.5, 5.0)
+
+
+def _square_graph(wrong: bool) -> tuple[np.ndarray, np.ndarray, list[Edge]]:
+    """A 4 x 4 m square driven twice with an odometry whose yaw drifts, exact loop closures at the revisits and,
+    with ``wrong``, one closure 2 m and 30 deg off."""
+    side = [np.array([1.0, 0.0, 0.0])] * 3 + [np.array([1.0, 0.0, np.pi / 2])]
+    inc = np.array(side * 8)
+    truth = np.zeros((len(inc) + 1, 3))
+    for k, d in enumerate(inc):
+        truth[k + 1] = compose(truth[k], d)
+    drift = inc + np.array([0.0, 0.0, 0.02])
+    cov = np.diag([1e-4, 1e-4, 4e-4])
+    edges = [Edge("odometry", k, k + 1, d, cov) for k, d in enumerate(drift)]
+    odo = np.zeros_like(truth)
+    for k, d in enumerate(drift):
+        odo[k + 1] = compose(odo[k], d)
+    lcov = np.diag([1e-3, 1e-3, 1e-4])
+    for j in range(16, len(truth)):
+        edges.append(Edge("loop", j - 16, j, between(truth[j - 16], truth[j]), lcov))
+    if wrong:
+        edges.append(Edge("loop", 2, 20, between(truth[2], compose(truth[20], np.array([2.0, 0.0, 0.5]))), lcov))
+    return truth, odo, edges
+
+
+def test_gnc_drops_a_deliberately_wrong_loop_closure() -> None:
+    truth, odo, edges = _square_graph(wrong=True)
+    poses, cov, kept = optimise(odo, edges, "gnc")
+    assert kept[-1] is False  # the wrong closure
+    assert all(kept[:-1])
+    err = np.abs(between(truth, poses))
+    assert err[:, :2].max() < 0.05 and err[:, 2].max() < 0.01
+    assert np.all(np.isfinite(cov)) and np.all(cov[:, 2, 2] > 0)
+    plain, _, _ = optimise(odo, edges, "none")  # least squares bends the whole loop toward it
+    assert np.abs(between(truth, plain))[:, :2].max() > 0.1
+
+
+def test_graph_on_a_drifting_synthetic_loop_beats_its_odometry() -> None:
+    run = make_run(700, np.random.default_rng(3), beams_per_scan=60, odo_yaw_bias=0.0003, odo_yaw_noise=0.001,
+                   outlier_fraction=0.05)
+    t = np.arange(700) * 0.1
+    cov = np.broadcast_to(np.diag([1e-4, 1e-4, 1e-6]), (700, 3, 3)).copy()
+    res = optimise_graph(run.odometry, cov, t, run.scans, GraphModel(loop_min_travel=10.0))
+    yaw = lambda p: np.degrees(np.sqrt(np.mean(between(run.groundtruth, p)[:, 2] ** 2)))  # noqa: E731
+    assert res.count("loop", True) >= 3
+    assert yaw(res.poses) < 0.5 * yaw(run.odometry)
+    assert len(res.poses) == 700 and res.keyframes[0] == 0
+
+
+def test_bad_inputs_are_stated() -> None:
+    odo = np.zeros((5, 3))
+    cov = np.broadcast_to(np.eye(3) * 1e-4, (5, 3, 3)).copy()
+    with pytest.raises(ValueError, match="one keyframe"):
+        optimise_graph(odo, cov, np.arange(5.0), [np.zeros((0, 2))] * 5, GraphModel())
+    with pytest.raises(ValueError, match="must agree"):
+        optimise_graph(odo, cov, np.arange(5.0), [np.zeros((0, 2))] * 4, GraphModel())
+    path = np.array([[0, 0, 0], [0.5, 0, 0], [1.0, 0, 0], [1.1, 0, 0.3]])
+    assert list(select_keyframes(path, 1.0, 15.0)) == [0, 2, 3]
+
+
+def test_missing_gtsam_names_the_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "gtsam", None)
+    odo = np.column_stack([np.arange(30) * 0.2, np.zeros(30), np.zeros(30)])
+    cov = np.broadcast_to(np.eye(3) * 1e-4, (30, 3, 3)).copy()
+    with pytest.raises(ImportError, match="pip install gtsam"):
+        optimise_graph(odo, cov, np.arange(30.0), [np.zeros((0, 2))] * 30, GraphModel())
