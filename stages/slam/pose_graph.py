@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from stages.slam.registration import MatcherModel, match
-from stages.slam.se2 import wrap_angle
+from stages.slam.se2 import between, compose, wrap_angle
 
 F64 = npt.NDArray[np.floating[Any]]
 I64 = npt.NDArray[np.int64]
@@ -82,22 +82,6 @@ class GraphResult:
 
 
 # -- SE(2) on arrays ------------------------------------------------------------------------------------------------
-
-
-def between(a: F64, b: F64) -> F64:
-    """``a^-1 b`` for poses ``(..., 3)``."""
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1)
-
-
-def compose(a: F64, d: F64) -> F64:
-    """``a d`` for poses ``(..., 3)``."""
-    a, d = np.asarray(a, np.float64), np.asarray(d, np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack([a[..., 0] + c * d[..., 0] - s * d[..., 1], a[..., 1] + s * d[..., 0] + c * d[..., 1],
-                     wrap_angle(a[..., 2] + d[..., 2])], axis=-1)
 
 
 def transform(pose: F64, points: F64) -> F64:

@@ -26,3 +26,11 @@ def compose(poses: npt.ArrayLike, delta: npt.ArrayLike) -> F64:
          wrap_angle(x[..., 2] + d[..., 2])],
         axis=-1,
     )
+
+
+def between(a: npt.ArrayLike, b: npt.ArrayLike) -> F64:
+    """``a^-1 b``: poses ``b (..., 3)`` in the frames of poses ``a (..., 3)``."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1)

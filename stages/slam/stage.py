@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 from typing import Any, Literal
 
@@ -419,7 +420,9 @@ class SlamStage(Stage):
         base_from_radar = read_calibration(ctx)
         scans, t_ns, odo, inc_cov = read_odometry(ctx)
         motion = OdometryMotion(inc_cov, np.r_[0.0, np.diff(t_ns) * 1e-9])
-        samples = read_samples(ctx, scans, base_from_radar, p)
+        point_scan, xyz = read_radar(ctx)
+        samples = beam_samples_by_scan(point_scan, xyz, scans, base_from_radar, p)
+        ctx.stats["radar_points_used"] = int(sum(len(o.endpoints) for o in samples))
         half, centre = domain_from_trajectory(odo[:, :2], p.domain_padding)
         basis = hm.make_basis(half, centre, p.n_basis, p.basis_kind)
         device, note = resolve_device(p.backend, p.device)
@@ -444,7 +447,8 @@ class SlamStage(Stage):
                 local = cfg.for_method(m).submaps is not None  # no global map to track: replayed below
                 obs = tracker.observe if (m == p.method and m in HILBERT_METHODS and not local) else None
                 if m in GRAPH_METHODS:
-                    res, graph = run_graph(ctx, p, odo, inc_cov, t_ns, scans, base_from_radar)
+                    endpoints = graph_endpoints_by_scan(point_scan, xyz, scans, base_from_radar, p)
+                    res, graph = run_graph(ctx, p, odo, inc_cov, t_ns, endpoints)
                     graphs[m] = graph
                     advance(len(scans))
                 else:
@@ -581,60 +585,49 @@ def read_odometry_file(path: Path, seq: str) -> tuple[npt.NDArray[np.int64], npt
     return scans, t_ns.astype(np.int64), poses, acc
 
 
-def read_samples(ctx: StageContext, scans: npt.NDArray[np.int64], base_from_radar: F64, p: SlamParams
-                 ) -> list[BeamSamples]:
-    """Body-frame beam samples for every odometry scan (empty where the filter kept nothing)."""
-    path = ctx.input("filter", "radar_filtered.parquet")
-    t = read_artifact(path, "radar_filtered", columns=["scan", "x", "y", "z"])
+def read_radar(ctx: StageContext) -> tuple[npt.NDArray[np.int64], F64]:
+    """The filtered radar points' scan numbers and radar-frame x, y, z."""
+    t = read_artifact(ctx.input("filter", "radar_filtered.parquet"), "radar_filtered", columns=["scan", "x", "y", "z"])
     xyz = np.stack([t[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], axis=1)
-    out = beam_samples_by_scan(t["scan"].to_numpy().astype(np.int64), xyz, scans, base_from_radar, p)
-    ctx.stats["radar_points_used"] = int(sum(len(o.endpoints) for o in out))
-    return out
+    return t["scan"].to_numpy().astype(np.int64), xyz
+
+
+def points_by_scan(point_scan: npt.NDArray[np.int64], xyz: F64, scans: npt.NDArray[np.int64],
+                   base_from_radar: F64, p: SlamParams) -> list[tuple[F64, F64]]:
+    """Each scan of ``scans``: its radar-frame points ``xyz`` (tagged ``point_scan``) in the 2D base frame inside
+    the height gate, and the radar origin there."""
+    order = np.argsort(point_scan, kind="stable")
+    s, xyz = point_scan[order], xyz[order]
+    lo = np.searchsorted(s, scans, side="left")
+    hi = np.searchsorted(s, scans, side="right")
+    return [radar_to_body_2d(xyz[a:b], base_from_radar, p.z_min, p.z_max) for a, b in zip(lo, hi, strict=True)]
 
 
 def beam_samples_by_scan(point_scan: npt.NDArray[np.int64], xyz: F64, scans: npt.NDArray[np.int64],
                          base_from_radar: F64, p: SlamParams) -> list[BeamSamples]:
     """Body-frame beam samples of every scan in ``scans`` from radar-frame points ``xyz`` tagged ``point_scan``."""
-    order = np.argsort(point_scan, kind="stable")
-    s, xyz = point_scan[order], xyz[order]
-    lo = np.searchsorted(s, scans, side="left")
-    hi = np.searchsorted(s, scans, side="right")
+    return [sample_beams(pts, origin, p.ray_step, p.max_range, p.min_range, p.free_clearance)
+            for pts, origin in points_by_scan(point_scan, xyz, scans, base_from_radar, p)]
+
+
+def graph_endpoints_by_scan(point_scan: npt.NDArray[np.int64], xyz: F64, scans: npt.NDArray[np.int64],
+                            base_from_radar: F64, p: SlamParams) -> list[F64]:
+    """radar_graph's input: each scan's points in the 2D base frame within ``graph_max_range`` of the radar (and
+    beyond ``min_range``, inside the height gate)."""
     out = []
-    for a, b in zip(lo, hi, strict=True):
-        pts, origin = radar_to_body_2d(xyz[a:b], base_from_radar, p.z_min, p.z_max)
-        out.append(sample_beams(pts, origin, p.ray_step, p.max_range, p.min_range, p.free_clearance))
+    for pts, origin in points_by_scan(point_scan, xyz, scans, base_from_radar, p):
+        r = np.hypot(*(pts - origin).T) if len(pts) else np.zeros(0)
+        out.append(pts[(r <= p.graph_max_range) & (r >= p.min_range)])
     return out
 
 
 # -- radar_graph ---------------------------------------------------------------------------------------------------
 
 
-def graph_endpoints(ctx: StageContext, scans: npt.NDArray[np.int64], base_from_radar: F64, p: SlamParams
-                    ) -> list[F64]:
-    """Each odometry scan's radar endpoints in the 2D base frame, within ``graph_max_range`` of the radar (and
-    beyond ``min_range``, inside the height gate)."""
-    path = ctx.input("filter", "radar_filtered.parquet")
-    t = read_artifact(path, "radar_filtered", columns=["scan", "x", "y", "z"])
-    xyz = np.stack([t[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], axis=1)
-    point_scan = t["scan"].to_numpy().astype(np.int64)
-    order = np.argsort(point_scan, kind="stable")
-    s, xyz = point_scan[order], xyz[order]
-    lo, hi = np.searchsorted(s, scans, side="left"), np.searchsorted(s, scans, side="right")
-    out = []
-    for a, b in zip(lo, hi, strict=True):
-        pts, origin = radar_to_body_2d(xyz[a:b], base_from_radar, p.z_min, p.z_max)
-        r = np.hypot(*(pts - origin).T) if len(pts) else np.zeros(0)
-        out.append(pts[(r <= p.graph_max_range) & (r >= p.min_range)])
-    return out
-
-
 def run_graph(ctx: StageContext, p: SlamParams, odo: F64, inc_cov: F64, t_ns: npt.NDArray[np.int64],
-              scans: npt.NDArray[np.int64], base_from_radar: F64) -> tuple[MethodResult, GraphResult]:
+              endpoints: list[F64]) -> tuple[MethodResult, GraphResult]:
     """radar_graph on the stage's inputs (a one-line error for a log too short or GTSAM missing)."""
-    import time
-
     t0 = time.perf_counter()
-    endpoints = graph_endpoints(ctx, scans, base_from_radar, p)
     try:
         g = optimise_graph(odo, inc_cov, (t_ns - t_ns[0]) * 1e-9, endpoints, p.graph_model())
     except ImportError as exc:

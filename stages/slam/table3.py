@@ -62,7 +62,7 @@ from stages.slam.methods import (
     run_method,
 )
 from stages.slam.pose_graph import optimise_graph
-from stages.slam.stage import SlamParams, beam_samples_by_scan, read_odometry_file
+from stages.slam.stage import SlamParams, beam_samples_by_scan, graph_endpoints_by_scan, read_odometry_file
 from stages.slam.unit_study import read_run_folder
 
 F64 = npt.NDArray[np.floating[Any]]
@@ -281,7 +281,7 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
             t0 = time.perf_counter()
             graph_counts: dict[str, int] = {}
             if m in GRAPH_METHODS:
-                res, graph_counts = run_graph_method(run_dir, p, overrides, t_ns, odo, motion)
+                res, graph_counts = run_graph_method(run_dir, p, t_ns, odo, motion)
             else:
                 res = run_method(m, odo, samples, basis, cfg, s, motion=motion)
             seconds = time.perf_counter() - t0
@@ -318,12 +318,14 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
                 say_row(row, f"{row['s_per_scan']:.3f} s/scan")
 
 
-def run_graph_method(run_dir: Path, p: SlamParams, overrides: dict[str, Any], t_ns: npt.NDArray[np.int64], odo: F64,
+def run_graph_method(run_dir: Path, p: SlamParams, t_ns: npt.NDArray[np.int64], odo: F64,
                      motion: OdometryMotion) -> tuple[MethodResult, dict[str, int]]:
     """radar_graph on a run folder, as the slam stage runs it (endpoints to ``graph_max_range``): its result and
     the loop-closure counts of the row."""
-    wide = SlamParams(**{**overrides, "max_range": p.graph_max_range})
-    endpoints = [b.endpoints for b in load_inputs(run_dir, wide)[2]]
+    _, calib, radar = read_run_folder(run_dir)
+    scans = read_odometry_motion(run_dir)[0]
+    xyz = np.stack([radar[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], 1)
+    endpoints = graph_endpoints_by_scan(radar["scan"].to_numpy().astype(np.int64), xyz, scans, calib, p)
     g = optimise_graph(odo, motion.cov, (t_ns - t_ns[0]) * 1e-9, endpoints, p.graph_model())
     counts = {"keyframes": len(g.keyframes), "loops_proposed": g.count("loop"),
               "loops_accepted": g.count("loop", True), "loops_rejected": g.count("loop", False)}
