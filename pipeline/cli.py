@@ -45,10 +45,12 @@ out = Console()
 
 SeqOpt = Annotated[list[str], typer.Option(
     "--seq", "-s", help="sequence name, list (a,b) or glob ('coloradar_*'); repeat it for more")]
-OneSeqOpt = Annotated[list[str], typer.Option("--seq", "-s", help="one sequence name")]
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override a parameter: STAGE.PARAM=VALUE")]
 RunsOpt = Annotated[Path | None, typer.Option("--runs-dir", help="run store (default ./runs or $RADAR_PIPELINE_RUNS)")]
 WorkflowOpt = Annotated[str, typer.Option("--workflow", "-w", help="workflow in workflows/ (or a .toml path)")]
+SourceOpt = Annotated[Path | None, typer.Option(
+    "--source", help="a bag, MCAP or extracted folder (as given to `pipeline run --source`)")]
+DatasetOpt = Annotated[str, typer.Option("--dataset", help="dataset profile for --source")]
 
 
 def _sequences(seq: str | None, source: Path | None, dataset: str) -> list[SequenceInfo]:
@@ -57,6 +59,15 @@ def _sequences(seq: str | None, source: Path | None, dataset: str) -> list[Seque
     if not seq:
         raise UserError("--seq is required (see `pipeline sequences`), or pass --source PATH")
     return expand_sequences(seq, load_registry())
+
+
+def seq_name(values: list[str] | None, source: Path | None, dataset: str, command: str) -> str:
+    """The one sequence a command reads: ``--seq``, or the name ``pipeline run --source`` gave the log."""
+    if source is not None:
+        return source_sequence(source, one_seq(values, command) if values else None, dataset).name
+    if not values:
+        raise UserError(f"pipeline {command}: --seq is required (see `pipeline sequences`), or pass --source PATH")
+    return one_seq(values, command)
 
 
 def one_seq(values: list[str], command: str) -> str:
@@ -99,7 +110,8 @@ def _print_outcomes(seq: str, outcomes: list[StageOutcome]) -> None:
 
 @app.command()
 def run(
-    stages: Annotated[list[str], typer.Argument(help="stages to bring up to date, or 'all'")],
+    stages: Annotated[list[str], typer.Argument(help=f"stages to bring up to date ({', '.join(STAGE_NAMES)}), or "
+                                                "'all' (the workflow's stages)")],
     seq: Annotated[list[str] | None, typer.Option(
         "--seq", "-s", help="sequence name, list (a,b) or glob; repeat it for more")] = None,
     set_: SetOpt = None,
@@ -205,21 +217,24 @@ def _comparison_table() -> Any:
 
 @app.command()
 def status(
-    seq: SeqOpt,
+    seq: Annotated[list[str] | None, typer.Option(
+        "--seq", "-s", help="sequence name, list (a,b) or glob ('coloradar_*'); repeat it for more")] = None,
     set_: SetOpt = None,
     runs_dir: RunsOpt = None,
     workflow: WorkflowOpt = "default",
+    source: SourceOpt = None,
+    dataset: DatasetOpt = "coloradar",
 ) -> None:
     """Per stage: done / stale (why) / missing / unavailable, with timings."""
     registry = load_stages()
     overrides = parse_set(set_ or [], registry)
     wf = load_workflow(workflow)
-    for info in expand_sequences(seq_spec(seq) or "", load_registry()):
+    for info in _sequences(seq_spec(seq), source, dataset):
         runner = Runner(info, _runs_dir(runs_dir), registry, wf, overrides, console)
         table = Table(title=f"{info.name} ({runner.store.seq_dir})", title_justify="left")
         for col in ("stage", "state", "seconds", "finished", "why"):
             table.add_column(col, justify="right" if col == "seconds" else "left")
-        colors = {"done": "green", "stale": "yellow", "missing": "red", "unavailable": "dim"}
+        colors = {"done": "green", "stale": "yellow", "damaged": "red", "missing": "red", "unavailable": "dim"}
         for st in runner.status():
             table.add_row(st.stage, f"[{colors[st.state]}]{st.state}[/]",
                           f"{st.seconds:.1f}" if st.seconds is not None else "",
@@ -247,7 +262,9 @@ def sequences() -> None:
 
 @app.command()
 def params(stage: Annotated[str | None, typer.Argument(help="a stage name (default: all)")] = None,
-           workflow: WorkflowOpt = "default") -> None:
+           workflow: WorkflowOpt = "default",
+           full: Annotated[bool, typer.Option("--full", help="whole descriptions (default: their first clause)")]
+           = False) -> None:
     """List stage parameters, their types, defaults and the workflow's values."""
     registry = load_stages()
     wf = load_workflow(workflow)
@@ -261,20 +278,27 @@ def params(stage: Annotated[str | None, typer.Argument(help="a stage name (defau
         for pname, typ, default, desc in describe_params(registry[name]):
             wval = wf.params.get(name, {}).get(pname, "")
             rows.append([escape(f"{name}.{pname}"), escape(typ), escape(repr(default)),
-                         escape(repr(wval)) if wval != "" else "", escape(desc)])
+                         escape(repr(wval)) if wval != "" else "", escape(desc if full else brief(desc))])
         columns = [Column("parameter", keep=True), Column("type"), Column("default"),
                    Column(f"workflow {wf.name}"), Column("description")]
         print_listing(out, f"{name}: {registry[name].description}", columns, rows)
 
 
+def brief(text: str) -> str:
+    """A description's first clause (up to ``; ``)."""
+    return text.split("; ", 1)[0]
+
+
 @app.command()
 def view(
-    seqs: OneSeqOpt,
     stages: Annotated[list[str] | None, typer.Argument(help="stages to open (default: all present)")] = None,
+    seqs: Annotated[list[str] | None, typer.Option("--seq", "-s", help="one sequence name")] = None,
     runs_dir: RunsOpt = None,
+    source: SourceOpt = None,
+    dataset: DatasetOpt = "coloradar",
 ) -> None:
     """Open the run's .rrd files in the Rerun viewer (prints the command when headless)."""
-    seq = one_seq(seqs, "view")
+    seq = seq_name(seqs, source, dataset, "view")
     store = RunStore(_runs_dir(runs_dir), seq)
     present = [p.name for p in sorted(store.seq_dir.glob("*")) if p.is_dir() and not p.name.startswith(".")]
     order = {name: i for i, name in enumerate(STAGE_NAMES)}
@@ -293,18 +317,20 @@ def view(
 
 @app.command()
 def export(
-    seqs: OneSeqOpt,
     fmt: Annotated[str, typer.Option("--format", "-f", help="tum | ply | mcap")],
+    seqs: Annotated[list[str] | None, typer.Option("--seq", "-s", help="one sequence name")] = None,
     out_dir: Annotated[Path | None, typer.Option("--out", help="output folder (default runs/<seq>/export)")] = None,
     runs_dir: RunsOpt = None,
     groundtruth_stamps: Annotated[str, typer.Option(
         "--groundtruth-stamps", help="tum: ground truth interpolated at the estimates' stamps (estimates: evo "
         "pairs every pose exactly) or at its own samples (own)")] = "estimates",
+    source: SourceOpt = None,
+    dataset: DatasetOpt = "coloradar",
 ) -> None:
     """Export trajectories (TUM, evo-compatible), maps (PLY) or results (MCAP with Foxglove schemas)."""
     from pipeline.export import export as do_export
 
-    store = RunStore(_runs_dir(runs_dir), one_seq(seqs, "export"))
+    store = RunStore(_runs_dir(runs_dir), seq_name(seqs, source, dataset, "export"))
 
     def note(message: str) -> None:
         console.print(f"[yellow]note[/] {escape(message)}", soft_wrap=True, highlight=False)
@@ -355,9 +381,13 @@ def report(
                                                   "combined metrics as .parquet beside it)")] = None,
     sweep: Annotated[str | None, typer.Option("--sweep", help="gather a sweep's points (runs/sweeps/NAME) "
                                               "instead; run sweeps with `pipeline sweep NAME --seq SEQ`")] = None,
+    source: SourceOpt = None,
+    dataset: DatasetOpt = "coloradar",
 ) -> None:
     """Gather the evaluate results of several runs (or of a sweep) into one comparison table."""
     seqs = seq_spec(seqs_)
+    if source is not None:  # --seq names the --source run, as for `pipeline run`
+        seqs = seq_name(seqs_, source, dataset, "report")
     from pipeline import report as rep
 
     runs = runs_dir or default_runs_dir()
@@ -373,12 +403,20 @@ def report(
         out.print(rep.rich_table(*t))
     for m in missing:
         console.print(f"[yellow]note[/] {m}: no evaluation in {runs}; run `pipeline run evaluate --seq {m}`")
+    stale = rep.stale_rows(runs, sorted({str(r["seq"]) for r in records})) if sweep is None else {}
+    for seq, why in stale.items():
+        console.print(f"[yellow]stale[/] {escape(seq)}: {escape(why)}; refresh with "
+                      f"`pipeline run evaluate --seq {seq}`", soft_wrap=True, highlight=False)
     if out_file is not None:
-        if sweep is None:
-            written = rep.write_outputs(records, out_file, title, runs_dir=runs)
-            written += rep.write_figures(runs, records, out_file)
-        else:
-            written = rep.write_sweep_markdown(records, out_file, title)
+        try:
+            if sweep is None:
+                written = rep.write_outputs(records, out_file, title, runs_dir=runs, stale=stale)
+                written += rep.write_figures(runs, records, out_file)
+            else:
+                written = rep.write_sweep_markdown(records, out_file, title)
+        except OSError as exc:
+            raise UserError(f"--out {out_file}: cannot write there ({exc.strerror or exc}); name a file in a "
+                            f"folder you can write to") from None
         for p in written:
             out.print(str(p))
 
@@ -491,6 +529,15 @@ def main() -> None:
         sys.exit(int(getattr(exc, "exit_code", 2) or 2))
     except KeyboardInterrupt:
         _interrupted()
+    except OSError as exc:
+        from pipeline.resources import is_disk_full
+
+        if not is_disk_full(exc):
+            raise
+        where = f" writing {exc.filename}" if getattr(exc, "filename", None) else ""
+        console.print(f"[bold red]error:[/] the disk is full{escape(where)} ({escape(exc.strerror or str(exc))}); free "
+                      f"space or write elsewhere (--runs-dir, --out)", soft_wrap=True, highlight=False)
+        sys.exit(2)
     if code == INTERRUPTED:
         _interrupted()
     if isinstance(code, int) and not isinstance(code, bool) and code != 0:

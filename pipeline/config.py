@@ -17,7 +17,7 @@ from pydantic import ValidationError
 
 from pipeline.errors import UserError
 from pipeline.paths import workflows_dir
-from pipeline.stage import Stage, StageParams
+from pipeline.stage import Stage, StageParams, bool_for_number
 
 Overrides = dict[str, dict[str, Any]]
 
@@ -133,6 +133,11 @@ def build_params(stage: Stage, layers: Sequence[tuple[str, Mapping[str, Any]]]) 
     merged: dict[str, Any] = {}
     for _source, values in layers:
         merged.update(values)
+    flagged = bool_for_number(stage.Params, merged)
+    if flagged is not None:
+        source = next((s for s, v in reversed(layers) if flagged in v), "defaults")
+        raise UserError(f"{source}: {stage.name}.{flagged}={str(merged[flagged]).lower()}: a bool where a number is "
+                        f"expected; give a number")
     try:
         return stage.Params.model_validate(merged)
     except ValidationError as exc:

@@ -6,6 +6,7 @@ DESIGN.md (``world/radar/raw``, ``world/slam/trajectory``, ``metrics/<name>``, .
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -60,12 +61,29 @@ def scan_lengths(scan_ids: npt.NDArray[Any]) -> tuple[npt.NDArray[np.int64], npt
 
 
 class StageRecording:
-    """A Rerun recording saved to one ``.rrd`` file."""
+    """A Rerun recording saved to one ``.rrd`` file.
+
+    The encoded stream is drained from Rerun and written by Python's file I/O (not Rerun's file sink, whose
+    background writer blocks for good on a full disk), so a write error is raised here, where it happened.
+    """
+
+    #: bulk calls between drains of the encoded stream into the file
+    DRAIN_EVERY = 32
 
     def __init__(self, seq: str, path: str | Path) -> None:
         self.path = Path(path)
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id(seq), make_default=False)
-        self.rec.save(str(self.path))
+        self._stream = rr.binary_stream(recording=self.rec)
+        self._file: Any = self.path.open("wb")
+        self._calls = 0
+
+    def drain(self, force: bool = False) -> None:
+        self._calls += 1
+        if not force and self._calls % self.DRAIN_EVERY:
+            return
+        data = self._stream.read(flush=True)
+        if data:
+            self._file.write(data)
 
     # -- bulk helpers ---------------------------------------------------------------------------------
     def points_over_time(
@@ -93,6 +111,7 @@ class StageRecording:
             indexes=time_columns(scans, t_ns),
             columns=rr.Points3D.columns(**kwargs).partition(lengths=lengths),
         )
+        self.drain()
 
     def points_by_scan(
         self,
@@ -136,11 +155,13 @@ class StageRecording:
         if values.size == 0:
             return
         self.rec.send_columns(entity, indexes=time_columns(scans, t_ns), columns=rr.Scalars.columns(scalars=values))
+        self.drain()
 
     def static_points(self, entity: str, positions: npt.ArrayLike, colors: npt.ArrayLike | None = None,
                       radii: float | None = None) -> None:
         positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
         self.rec.log(entity, rr.Points3D(positions, colors=colors, radii=radii), static=True)
+        self.drain()
 
     def log(self, entity: str, archetype: Any, scan: int | None = None, t_ns: int | None = None,
             static: bool = False) -> None:
@@ -150,11 +171,28 @@ class StageRecording:
         if t_ns is not None:
             self.rec.set_time("sensor_time", timestamp=np.datetime64(int(t_ns), "ns"))
         self.rec.log(entity, archetype, static=static)
+        self.drain()
 
     def close(self) -> None:
-        """Flush everything to the file and release it."""
-        self.rec.flush()
-        self.rec.disconnect()
+        """Write everything still buffered to the file and release it; a write error (full disk) is raised."""
+        if self._file is None:
+            return
+        try:
+            self.drain(force=True)
+            self._file.flush()
+            os.fsync(self._file.fileno())
+        finally:
+            self.abort()
+
+    def abort(self) -> None:
+        """Release the recording without writing what is still buffered (the stage failed)."""
+        if self._file is not None:
+            try:
+                self._file.close()
+            except OSError:
+                pass
+            self._file = None
+            self.rec.disconnect()
 
 
 def entity_paths_in(path: str | Path) -> set[str]:

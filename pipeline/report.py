@@ -111,15 +111,70 @@ def to_markdown(records: Sequence[dict[str, Any]], title: str = "Comparison",
     return stage_report().markdown(records, title, sequences)
 
 
+def stale_rows(runs_dir: Path, seqs: Iterable[str], stage: str = "evaluate") -> dict[str, str]:
+    """Per sequence whose ``stage`` result no longer matches what is in its run folder: why, in one line.
+
+    A result is stale when a stage it was computed from (directly or further up) has been rerun since, or is
+    gone: its manifest's recorded input keys differ from the inputs' manifests now."""
+    out: dict[str, str] = {}
+    for seq in seqs:
+        store = RunStore(Path(runs_dir), seq)
+        rerun: dict[str, str] = {}
+        gone: list[str] = []
+        todo, seen = [stage], set()
+        while todo:
+            name = todo.pop()
+            if name in seen:
+                continue
+            seen.add(name)
+            manifest = store.read_manifest(name)
+            if manifest is None:
+                continue
+            for dep, key in sorted(manifest.get("inputs", {}).items()):
+                now = store.read_manifest(dep)
+                if now is None:
+                    gone.append(dep)
+                elif now.get("key") != key:
+                    rerun[dep] = str(now.get("timings", {}).get("finished_at", ""))
+                else:
+                    todo.append(dep)
+        reasons = []
+        if rerun:
+            names = sorted(rerun, key=lambda n: rerun[n])
+            reasons.append(f"computed from {', '.join(repr(n) for n in names)} result(s) rerun since "
+                           f"(last at {max(rerun.values())})")
+        if gone:
+            reasons.append(f"the {', '.join(repr(n) for n in sorted(set(gone)))} result(s) it used are gone")
+        if reasons:
+            out[seq] = "; ".join(reasons)
+    return out
+
+
 def write_outputs(records: Sequence[dict[str, Any]], out: Path, title: str,
-                  runs_dir: Path | None = None) -> list[Path]:
-    """``out`` (markdown) and the combined long table beside it (``<out>.parquet``)."""
+                  runs_dir: Path | None = None, stale: Mapping[str, str] | None = None) -> list[Path]:
+    """``out`` (markdown, with a list of the stale rows under the title) and the combined long table beside it
+    (``<out>.parquet``), each written to a temporary name and renamed into place."""
+    import os
+    import uuid
+
     import numpy as np
 
     from schemas import write_artifact
 
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(to_markdown(records, title, runs_dir=runs_dir))
+    text = to_markdown(records, title, runs_dir=runs_dir)
+    if stale:
+        lines = [f"- **{seq}**: {why}; refresh with `pipeline run evaluate --seq {seq}`"
+                 for seq, why in stale.items()]
+        head, _, rest = text.partition("\n")
+        text = "\n".join([head, "", "Stale rows (computed from results that have been replaced since):", "", *lines,
+                          "", rest.lstrip("\n")])
+    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
     cols: dict[str, Any] = {k: [r.get(k) for r in records] for k in ("seq", "method", "metric")}
     cols["value"] = np.array([r["value"] for r in records], np.float64)
     cols["features"] = np.array([int(r.get("features") or 0) for r in records], np.int32)

@@ -33,6 +33,7 @@ from rich.markup import escape
 from pipeline import __version__
 from pipeline.config import Overrides, Workflow, build_params, check_param_names
 from pipeline.errors import UserError
+from pipeline.resources import folder_size, free_space, human_bytes, is_disk_full
 from pipeline.sequences import SequenceInfo
 from pipeline.stage import Stage, StageContext, StageParams
 from pipeline.store import RunStore, compute_key
@@ -41,7 +42,7 @@ from pipeline.store import RunStore, compute_key
 @dataclass
 class StageStatus:
     stage: str
-    state: str  # done | stale | missing | unavailable
+    state: str  # done | stale | damaged | missing | unavailable
     reason: str = ""
     key: str | None = None
     seconds: float | None = None
@@ -257,6 +258,9 @@ class Runner:
             return StageStatus(name, "missing", "never run" if not self.store.stage_dir(name).exists()
                                else "incomplete result", key)
         timing = manifest.get("timings", {})
+        damage = self.store.damage(name)
+        if damage is not None:
+            return StageStatus(name, "damaged", damage, key, timing.get("seconds"), timing.get("finished_at"))
         if manifest.get("key") == key:
             return StageStatus(name, "done", "", key, timing.get("seconds"), timing.get("finished_at"))
         return StageStatus(name, "stale", self._why_stale(name, manifest), key,
@@ -356,15 +360,27 @@ class Runner:
                     continue
                 st = self.stage_status(name)
                 if st.state == "done" and name not in force:
-                    outcomes.append(StageOutcome(name, "cached", st.seconds or 0.0))
-                    self.console.print(f"[dim]{name:<9} cached[/]")
-                    continue
+                    damage = self.store.damage(name, checksums=True)
+                    if damage is None:
+                        outcomes.append(StageOutcome(name, "cached", st.seconds or 0.0))
+                        self.console.print(f"[dim]{name:<9} cached[/]")
+                        continue
+                    st = StageStatus(name, "damaged", damage, st.key)
+                    self.console.print(f"[yellow]warning[/] {self.seq.name}: the cached '{name}' result is damaged "
+                                       f"({escape(damage)}); running it again", soft_wrap=True)
                 if name not in force and self._reuse(name):
                     outcomes.append(StageOutcome(name, "reused", 0.0))
                     self.console.print(f"[dim]{name:<9} reused[/]")
                     continue
                 why = "forced" if name in force else (st.reason if st.state == "stale" else st.state)
+                if st.state == "damaged":
+                    why = "damaged result"
                 self.console.print(f"[bold]{name:<9}[/] running ({why})")
+                before = self.store.read_manifest(name) if st.state == "stale" else None
+                if before is not None and before.get("workflow") not in (None, self.workflow.name):
+                    self.console.print(f"[yellow]note[/] {self.seq.name}: this replaces the '{name}' result made with "
+                                       f"workflow '{escape(str(before['workflow']))}' (a run folder keeps one result "
+                                       f"per stage; pass another --runs-dir to keep both)", soft_wrap=True)
                 try:
                     seconds = self._execute(name)
                 except Exception as exc:
@@ -398,15 +414,44 @@ class Runner:
         key = self.key(name)
         for other in self.reuse:
             manifest = other.read_manifest(name)
-            if manifest is not None and manifest.get("key") == key:
+            if manifest is not None and manifest.get("key") == key and other.damage(name, checksums=True) is None:
                 self.store.import_from(other, name)
                 return True
         return False
 
+    def check_memory(self, name: str) -> None:
+        """Refuse, before it starts, a stage whose modelled peak memory exceeds what the machine has free."""
+        from pipeline.resources import available_memory
+
+        stage = self.registry[name]
+        dirs = {i: self.store.stage_dir(i) for i in self.inputs_of(name)}
+        estimate = stage.memory_estimate(self.seq, self.params(name), dirs)
+        free = available_memory()
+        if estimate is None or free is None or estimate[0] <= free:
+            return
+        need, what = estimate
+        raise UserError(f"stage '{name}' of {self.seq.name} would need about {human_bytes(need)} of memory ({what}) "
+                        f"and {human_bytes(free)} is available; lower those parameters")
+
+    def _disk_full(self, name: str) -> UserError:
+        """The one-line error for a stage that met a full disk (its temporary folder already removed)."""
+        free = free_space(self.store.seq_dir) or 0
+        before = folder_size(self.store.stage_dir(name))
+        took = f"; its last result took {human_bytes(before)}" if before else ""
+        return UserError(f"stage '{name}' of {self.seq.name}: the disk is full under {self.store.seq_dir} "
+                         f"({human_bytes(free)} free{took}); free space there or pass another --runs-dir; nothing was "
+                         f"lost (the previous result is kept)")
+
     def _execute(self, name: str) -> float:
         stage = self.registry[name]
         params = self.params(name)
-        tmp = self.store.new_temp_dir(name)
+        self.check_memory(name)
+        try:
+            tmp = self.store.new_temp_dir(name)
+        except OSError as exc:
+            if is_disk_full(exc):
+                raise self._disk_full(name) from None
+            raise
         ctx = StageContext(
             stage=name,
             seq=self.seq,
@@ -444,9 +489,11 @@ class Runner:
             }
             self.store.commit(name, tmp, manifest)
             return seconds
-        except BaseException:
+        except BaseException as exc:
             try:
-                ctx.close()
+                ctx.abort()
             finally:
                 shutil.rmtree(tmp, ignore_errors=True)
+            if isinstance(exc, Exception) and is_disk_full(exc):
+                raise self._disk_full(name) from None
             raise

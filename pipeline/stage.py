@@ -18,7 +18,7 @@ from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_validator
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -59,10 +59,51 @@ class StageReport(Protocol):
                       meta: Mapping[str, Any]) -> list[Path]: ...
 
 
+def _takes_bool(annotation: Any) -> bool:
+    """Whether a field's annotation admits a bool (``bool``, ``bool | None``, ``Literal[True]``...)."""
+    import typing
+
+    if annotation is bool:
+        return True
+    args = typing.get_args(annotation)
+    if typing.get_origin(annotation) is typing.Literal:
+        return any(isinstance(a, bool) for a in args)
+    return any(_takes_bool(a) for a in args) if args else annotation is Any
+
+
+def _takes_number(annotation: Any) -> bool:
+    import typing
+
+    if annotation in (int, float):
+        return True
+    return any(_takes_number(a) for a in typing.get_args(annotation))
+
+
 class StageParams(BaseModel):
-    """Base of every stage's parameter model: unknown names are rejected, types are checked."""
+    """Base of every stage's parameter model: unknown names are rejected, types are checked, and a bool is
+    never taken for a number (``n_particles=true`` is an error, not one particle)."""
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_for_numbers(cls, data: Any) -> Any:
+        name = bool_for_number(cls, data)
+        if name is not None:
+            raise ValueError(f"{name}={str(data[name]).lower()}: a bool where a number is expected; give a number")
+        return data
+
+
+def bool_for_number(model: type[BaseModel], data: Any) -> str | None:
+    """The first field of ``model`` that ``data`` gives a bool although the field takes only numbers."""
+    if not isinstance(data, dict):
+        return None
+    for name, value in data.items():
+        info = model.model_fields.get(name)
+        if (isinstance(value, bool) and info is not None and _takes_number(info.annotation)
+                and not _takes_bool(info.annotation)):
+            return str(name)
+    return None
 
 
 class Stage(ABC):
@@ -108,6 +149,13 @@ class Stage(ABC):
     def key_material(self, seq: SequenceInfo, params: StageParams) -> dict[str, Any]:
         """Extra values that enter the cache key (e.g. the fingerprint of a source bag)."""
         return {}
+
+    def memory_estimate(self, seq: SequenceInfo, params: StageParams,
+                        input_dirs: Mapping[str, Path]) -> tuple[int, str] | None:
+        """Peak bytes the stage will hold for these parameters and finished inputs, with the parameters that set
+        it (``"slam.n_particles=200 x slam.n_basis=256^2"``); None when it is small or not modelled. The runner
+        refuses a run whose estimate exceeds the memory available, before it starts."""
+        return None
 
     def report(self) -> StageReport | None:
         """Tables and figures over many runs of this stage (``pipeline report``); None when it has none."""
@@ -192,18 +240,34 @@ class StageContext:
         return self._recording
 
     def close(self) -> None:
+        """Write the recording out (a write error, e.g. a full disk, is raised)."""
         if self._recording is not None:
-            self._recording.close()
-            self._recording = None
+            rec, self._recording = self._recording, None
+            rec.close()
+
+    def abort(self) -> None:
+        """Release the recording without writing it (the stage failed; its folder is removed)."""
+        if self._recording is not None:
+            rec, self._recording = self._recording, None
+            rec.abort()
 
     def warn(self, message: str) -> None:
         """Print a warning and keep it in the manifest."""
         self.console.print(f"[yellow]warning[/] {self.stage}: {escape(message)}")
         self.stats.setdefault("warnings", []).append(message)
 
+    #: seconds between the plain progress lines printed when the console is not a terminal (a log, CI, ``tee``)
+    PLAIN_PROGRESS_EVERY_S: ClassVar[float] = 30.0
+
     @contextmanager
     def progress(self, total: int | None, description: str) -> Iterator[Any]:
-        """A rich progress bar; yields ``advance(n=1)``."""
+        """A rich progress bar on a terminal, otherwise a plain line every ``PLAIN_PROGRESS_EVERY_S`` seconds;
+        yields ``advance(n=1)``."""
+        import time
+
+        plain = not self.console.is_terminal
+        start = last = time.monotonic()
+        done = 0
         with Progress(
             TextColumn(f"[bold blue]{self.stage}[/] {description}"),
             BarColumn(),
@@ -217,7 +281,15 @@ class StageContext:
             task = prog.add_task(description, total=total)
 
             def advance(n: int = 1) -> None:
+                nonlocal done, last
                 prog.advance(task, n)
+                done += n
+                now = time.monotonic()
+                if plain and now - last >= self.PLAIN_PROGRESS_EVERY_S:
+                    last = now
+                    share = f" ({100 * done / total:.0f} %)" if total else ""
+                    self.console.print(f"{self.stage} {escape(description)}: {done}/{total or '?'}{share}, "
+                                       f"{now - start:.0f} s", highlight=False)
 
             yield advance
 

@@ -39,6 +39,12 @@ def compute_key(stage: str, params: dict[str, Any], code_version: str, inputs: d
     return hashlib.sha256(canonical_json(payload).encode()).hexdigest()[:20]
 
 
+def file_digest(path: Path) -> str:
+    """sha256 of a file, read in 1 MiB blocks."""
+    with path.open("rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
 def write_json_atomic(path: Path, obj: Any) -> None:
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
     try:
@@ -65,6 +71,25 @@ class RunStore:
     def manifest_path(self, stage: str) -> Path:
         return self.stage_dir(stage) / MANIFEST
 
+    def damage(self, stage: str, checksums: bool = False) -> str | None:
+        """What is wrong with the finished result's files (one line), or None: each artifact the manifest lists
+        must have its recorded size and, with ``checksums``, its recorded sha256."""
+        manifest = self.read_manifest(stage)
+        if manifest is None:
+            return None
+        for name, rec in manifest.get("artifacts", {}).items():
+            path = self.stage_dir(stage) / name
+            size, digest = (rec, None) if isinstance(rec, int) else (rec.get("size"), rec.get("sha256"))
+            try:
+                actual = path.stat().st_size
+            except OSError:
+                return f"{path} is missing"
+            if size is not None and actual != size:
+                return f"{path} is {actual} bytes, the manifest recorded {size}"
+            if checksums and digest is not None and file_digest(path) != digest:
+                return f"{path} does not match its recorded sha256"
+        return None
+
     def read_manifest(self, stage: str) -> dict[str, Any] | None:
         """The stage's manifest if it is complete and all listed artifacts exist, else None."""
         path = self.manifest_path(stage)
@@ -89,7 +114,8 @@ class RunStore:
     def commit(self, stage: str, tmp: Path, manifest: dict[str, Any]) -> Path:
         """Write the manifest into ``tmp`` and swap it into place."""
         manifest["artifacts"] = {
-            p.name: p.stat().st_size for p in sorted(tmp.iterdir()) if p.is_file() and p.name != MANIFEST
+            p.name: {"size": p.stat().st_size, "sha256": file_digest(p)}
+            for p in sorted(tmp.iterdir()) if p.is_file() and p.name != MANIFEST
         }
         manifest["complete"] = True
         write_json_atomic(tmp / MANIFEST, manifest)
@@ -166,8 +192,11 @@ class RunStore:
                 f"(lock: {lock_path})"
             ) from None
         try:
-            write_json_atomic(info_path, {"pid": os.getpid(), "host": socket.gethostname(),
-                                          "user": getpass.getuser(), "since": time.time()})
+            try:
+                write_json_atomic(info_path, {"pid": os.getpid(), "host": socket.gethostname(),
+                                              "user": getpass.getuser(), "since": time.time()})
+            except OSError:
+                pass  # who holds the lock is a courtesy (a full disk must not stop the run from reporting it)
             yield
         finally:
             info_path.unlink(missing_ok=True)

@@ -60,10 +60,9 @@ def print_listing(console: Console, title: str, columns: Sequence[Column], rows:
             table.add_row(*r)
         console.print(table)
         return
-    # plain listing: the first column heads each entry, the others follow as "header: value", never wrapped
+    # plain listing: one line per row, the first column then the others as "header: value", never cut
     console.print(f"[bold]{escape(title)}[/]", soft_wrap=True)
     for r in rows:
-        console.print(f"[bold]{r[0]}[/]", soft_wrap=True, highlight=False)
-        for col, cell in zip(columns[1:], r[1:], strict=True):
-            if cell_width(cell):
-                console.print(f"  {escape(col.header)}: {cell}", soft_wrap=True, highlight=False)
+        rest = [f"{escape(col.header)}: {cell}" for col, cell in zip(columns[1:], r[1:], strict=True)
+                if cell_width(cell)]
+        console.print(f"[bold]{r[0]}[/]  " + " | ".join(rest), soft_wrap=True, highlight=False)

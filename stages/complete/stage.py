@@ -82,7 +82,8 @@ class CompleteParams(StageParams):
     band_radius: float = Field(7.0, gt=0, description="pre-filter: horizontal distance to the trajectory (m)")
     band_z_below: float = Field(-3.0, description="pre-filter: lowest height over the trajectory (m)")
     band_z_above: float = Field(4.5, description="pre-filter: highest height over the trajectory (m)")
-    tile: int | None = Field(None, ge=8, description="voxel model: xy tile core (voxels, a multiple of 8); None = "
+    tile: int | None = Field(None, ge=8, le=4096,
+                             description="voxel model: xy tile core (voxels, a multiple of 8); None = "
                              "one pass over the whole map up to 24 M voxels, else 256; the halo is the receptive "
                              "radius, so the output does not depend on it")
     checkpoint: str = Field("auto", description="trained network (.safetensors or .pt); relative paths are "
@@ -98,12 +99,12 @@ class CompleteParams(StageParams):
                                            "about z, mirror) whose predictions are averaged, each costing one "
                                            "pass; None = the checkpoint's own count, with which its threshold "
                                            "was chosen")
-    batch_size: int = Field(8, ge=1, description="patches per forward pass")
+    batch_size: int = Field(8, ge=1, le=4096, description="patches per forward pass")
     seed: int = Field(0, description="seed of the input resampling (patches with more or fewer points than the "
                       "network's input size) and of torch")
-    resolution: float | None = Field(None, gt=0, description="downsampling voxel size (m); None = the voxel "
+    resolution: float | None = Field(None, ge=0.01, description="downsampling voxel size (m); None = the voxel "
                                      "stage's resolution (RMap: the map resolution, 0.15 m)")
-    threads: int | None = Field(None, ge=1, description="torch CPU threads (None = torch's default)")
+    threads: int | None = Field(None, ge=1, le=256, description="torch CPU threads (None = torch's default)")
     assembly: Assembly = Field("average", description="how the merged predicted patches become the map, one "
                                "point per occupied voxel: average = the mean of its points (RMap Sec. V); snap = "
                                "its centre (k + 1/2) * resolution, on the lattice of the voxel maps")

@@ -58,7 +58,7 @@ class EvaluateParams(StageParams):
                                     description="what to evaluate: trajectory, mapping, uncertainty, rmap")
     seed: int = Field(0, description="seed of every random draw (split, free samples, random features)")
     # -- trajectories
-    n_align: int = Field(100, ge=2, description="the paper's protocol: SE(2) alignment on the first N "
+    n_align: int = Field(100, ge=2, le=10_000_000, description="the paper's protocol: SE(2) alignment on the first N "
                          "ground-truth-matched frames (the whole-trajectory alignment is reported beside it)")
     max_gt_gap_s: float = Field(0.5, gt=0, description="an estimate is matched only when the ground-truth "
                                 "samples around its time are at most this far apart (s)")
@@ -66,7 +66,8 @@ class EvaluateParams(StageParams):
     auc_points: Literal["filtered", "raw"] = Field("filtered", description="radar points of the AUC protocol: "
                                                    "the filter stage's output or the raw detections")
     test_fraction: float = Field(0.2, gt=0, lt=1, description="share of scans held out for the AUC")
-    split_block_scans: int = Field(10, ge=1, description="scans are held out in contiguous blocks of this size "
+    split_block_scans: int = Field(10, ge=1, le=1_000_000,
+                                   description="scans are held out in contiguous blocks of this size "
                                    "(blocks drawn at random with the seed)")
     free_per_metre: float = Field(0.5, gt=0, description="free samples per metre of beam: max(1, floor(d * "
                                   "this)) per beam, uniform in [0, d - 0.1] (Hilbert maps: 0.5)")
@@ -94,17 +95,17 @@ class EvaluateParams(StageParams):
                                         "baselines and the minimum sparse-kernel support (m)")
     sgd_alpha: float = Field(1e-4, gt=0, description="L2 penalty of the SGD baselines (also sets the "
                              "learning rate 1 / (alpha (t0 + t)))")
-    sgd_epochs: int = Field(1, ge=1, description="passes over the training scans for the SGD baselines")
+    sgd_epochs: int = Field(1, ge=1, le=10_000, description="passes over the training scans for the SGD baselines")
     sparse_support_factor: float = Field(2.0, gt=0, description="sparse-kernel support in inducing-grid "
                                          "spacings")
-    grid_resolution: float = Field(0.5, gt=0, description="cell size of the count-grid reference (m)")
-    grid_spacing: float = Field(0.25, gt=0, description="query spacing of the maps written and plotted (m)")
-    uncertainty_every: int = Field(10, ge=1, description="record the uncertainty quartiles every N scans")
+    grid_resolution: float = Field(0.5, ge=0.01, description="cell size of the count-grid reference (m)")
+    grid_spacing: float = Field(0.25, ge=0.01, description="query spacing of the maps written and plotted (m)")
+    uncertainty_every: int = Field(10, ge=1, le=1_000_000, description="record the uncertainty quartiles every N scans")
     query_spacings: list[float] = Field([10.0, 2.0, 1.0, 0.25], description="grid spacings (m) at which the "
                                         "slam map posterior is queried for the resolution figure (Fig. 9)")
     # -- RMap
     fscore_threshold: float = Field(0.15, gt=0, description="F-score distance d (m), RMap: one voxel")
-    blas_threads: int = Field(1, ge=0, description="BLAS threads while evaluating (0: leave the library's "
+    blas_threads: int = Field(1, ge=0, le=256, description="BLAS threads while evaluating (0: leave the library's "
                               "default); the matrices are small, and a multi-threaded BLAS on a busy machine "
                               "spins more than it computes")
 

@@ -44,8 +44,8 @@ class FilterParams(StageParams):
     inlier_threshold_mps: float = Field(0.15, gt=0, description="RANSAC Doppler inlier threshold (REVE)")
     outlier_probability: float = Field(0.4, gt=0, lt=1, description="assumed outlier fraction for the RANSAC count")
     success_probability: float = Field(0.9999, gt=0, lt=1, description="RANSAC success probability")
-    max_iterations: int = Field(200, ge=1, description="cap on RANSAC hypotheses")
-    min_points: int = Field(5, ge=3, description="fewest usable points for an ego-velocity estimate")
+    max_iterations: int = Field(200, ge=1, le=100_000, description="cap on RANSAC hypotheses")
+    min_points: int = Field(5, ge=3, le=100_000, description="fewest usable points for an ego-velocity estimate")
     zero_velocity_threshold_mps: float = Field(0.05, ge=0, description="zero-velocity test threshold (REVE)")
     allowed_outlier_fraction: float = Field(0.3, ge=0, lt=1,
                                             description="outlier share tolerated by the zero-velocity test (REVE)")
@@ -67,14 +67,15 @@ class FilterParams(StageParams):
                                        description="modelled elevation noise std (half the ~45 deg resolution)")
     max_point_sigma_m: float = Field(1.0, gt=0, description="point-uncertainty gate: largest position std, m")
     uncertainty_horizontal: bool = Field(True, description="gate on the horizontal (base xy) block of the covariance")
-    track_frames: int = Field(2, ge=0, description="previous scans a point must be matched in (0 = no tracking)")
+    track_frames: int = Field(2, ge=0, le=100,
+                              description="previous scans a point must be matched in (0 = no tracking)")
     track_gate_m: float = Field(0.3, ge=0, description="match radius for tracking, m")
     track_gate_sigma_scale: float = Field(1.0, ge=0, description="adds this many modelled point stds to the gate")
     track_use_z: bool = Field(False, description="match in 3D (default: horizontal x, y of the radar frame)")
     max_scan_gap_s: float = Field(0.5, gt=0, description="a larger gap between scans breaks every track")
     gt_velocity_half_window_s: float = Field(0.05, gt=0,
                                              description="central difference half-window for ground-truth velocity")
-    rerun_every: int = Field(1, ge=1, description="log every n-th scan's kept/rejected points to Rerun")
+    rerun_every: int = Field(1, ge=1, le=1_000_000, description="log every n-th scan's kept/rejected points to Rerun")
 
 
 def _config(p: FilterParams) -> ev.EgoVelocityConfig:

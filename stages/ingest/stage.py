@@ -60,23 +60,27 @@ class IngestParams(StageParams):
     radar_intensity_field: str = Field("", description="PointCloud2 field holding the radar intensity")
     lidar_intensity_field: str = Field("", description="PointCloud2 field holding the lidar intensity")
     doppler_sign: float | None = Field(None, description="override the profile's Doppler sign factor")
-    reorder_window: int = Field(16, ge=1, description="messages re-sorted by stamp per stream (out-of-order)")
-    batch_rows: int = Field(262_144, ge=1000, description="rows per Parquet row group (bounds memory)")
-    rerun_radar_every: int = Field(1, ge=1, description="log every n-th raw radar scan to Rerun")
-    rerun_lidar_every: int = Field(10, ge=1, description="log every n-th lidar scan to Rerun")
-    rerun_lidar_points: int = Field(2000, ge=1, description="random points kept per logged lidar scan")
-    rerun_flush_scans: int = Field(500, ge=1, description="scans buffered before a Rerun send_columns")
+    reorder_window: int = Field(16, ge=1, le=1_000_000,
+                                description="messages re-sorted by stamp per stream (out-of-order)")
+    batch_rows: int = Field(262_144, ge=1000, le=16_777_216, description="rows per Parquet row group (bounds memory)")
+    rerun_radar_every: int = Field(1, ge=1, le=1_000_000, description="log every n-th raw radar scan to Rerun")
+    rerun_lidar_every: int = Field(10, ge=1, le=1_000_000, description="log every n-th lidar scan to Rerun")
+    rerun_lidar_points: int = Field(2000, ge=1, le=10_000_000, description="random points kept per logged lidar scan")
+    rerun_flush_scans: int = Field(500, ge=1, le=1_000_000, description="scans buffered before a Rerun send_columns")
     seed: int = Field(0, description="seed of the lidar downsampling for Rerun")
     time_source: TimeSource = Field(
         "auto", description="'auto': line up streams whose header stamps are zero, constant or on another clock; "
                             "'header': header stamps as they are; 'record': the log's record time")
     clock_tolerance_s: float = Field(1.0, gt=0, description="auto: header-record offsets further apart than this "
                                                             "are different clocks, s")
-    clock_sample: int = Field(50, ge=2, description="first messages per stream examined to choose the clock")
+    clock_sample: int = Field(50, ge=2, le=1_000_000,
+                              description="first messages per stream examined to choose the clock")
     radar_latency_s: float = Field(0.0, ge=-0.5, le=0.5, description="radar stamp minus the time the scan measured "
                                    "the scene (s), subtracted from every radar stamp: a radar stamped on arrival "
                                    "(the TI sensors of ColoRadar) is late by its frame and processing time")
     radar_gap_warn_s: float = Field(1.0, gt=0, description="warn about a time without radar points longer than this, s")
+    max_gap_s: float = Field(5.0, gt=0, le=3600, description="longest time without radar points or IMU samples the "
+                             "odometry may dead-reckon through (s); a longer one stops ingest, naming its times")
     base_frame: str = Field("", description="override the profile's base (body) frame name")
     radar_frame: str = Field("", description="override the radar frame name (when the messages' frame_id is empty)")
     imu_frame: str = Field("", description="override the IMU frame name")
@@ -165,6 +169,7 @@ class _Ingest:
         self.empty_since = 0
         self.gaps: list[tuple[int, int, int]] = []
         self.imu_max_gap_ns = 0
+        self.imu_max_gap_at = 0
         label_field = [pa.field("label", pa.int8(), nullable=False)]
         self.writers = {
             "radar": ArtifactWriter(ctx.output("radar.parquet"), "radar", extra=label_field, batch_rows=p.batch_rows),
@@ -231,8 +236,9 @@ class _Ingest:
     def _emit(self, msg: Message) -> None:
         st = self.stats[msg.stream]
         st.first_t_ns = msg.t_ns if st.first_t_ns is None else st.first_t_ns
-        if msg.stream == "imu" and st.last_t_ns is not None:
-            self.imu_max_gap_ns = max(self.imu_max_gap_ns, msg.t_ns - st.last_t_ns)
+        if msg.stream == "imu" and st.last_t_ns is not None and msg.t_ns - st.last_t_ns > self.imu_max_gap_ns:
+            self.imu_max_gap_ns = msg.t_ns - st.last_t_ns
+            self.imu_max_gap_at = st.last_t_ns
         st.last_t_ns = msg.t_ns
         if msg.stream == "imu":
             assert msg.values is not None
@@ -408,6 +414,7 @@ class _Ingest:
                                    radii=np.full(len(xyz), 0.04 if radar else 0.02, np.float32))
         self.ctx.recording.rec.send_columns(entity, indexes=index,
                                             columns=cols.partition(lengths=[len(b[2]) for b in buf]))
+        self.ctx.recording.drain(force=True)
 
     def _log_transforms(self, gt: tuple[npt.NDArray[np.int64], F64], calib: dict[str, Any]) -> None:
         """Ground truth as a path; sensor clouds placed in the world by ground truth (world <- sensor)."""
@@ -468,6 +475,31 @@ class _Ingest:
                              "mb_per_s": round(self.src.bytes_read / 1e6 / max(seconds, 1e-9), 2)}
         if "radar" in self.src.streams and self.stats["radar"].messages == 0:
             raise UserError(f"{self.path}: radar topic '{self.src.streams['radar']}' holds no messages")
+        radar = self.stats["radar"]
+        if "radar" in self.src.streams and radar.points == 0:
+            raise UserError(f"{self.path}: radar topic '{self.src.streams['radar']}': all {radar.messages} scan(s) are "
+                            f"empty or hold only NaN/inf points ({radar.nonfinite_dropped} non-finite dropped); there "
+                            f"is nothing to run on: check the topic (--set ingest.radar_topic=TOPIC) and the recording")
+        self._check_gaps()
+
+    def _check_gaps(self) -> None:
+        """A stretch without radar points or IMU samples longer than ``max_gap_s`` (a clock jump, a pause, a
+        dropout) is an error naming its times: the odometry would dead-reckon through it."""
+        limit = self.p.max_gap_s * NS
+        found = [("radar points", a, d) for a, d, _e in self.gaps if d > limit]
+        if self.imu_max_gap_ns > limit:
+            found.append(("IMU samples", self.imu_max_gap_at, self.imu_max_gap_ns))
+        if not found:
+            return
+        what, start, length = max(found, key=lambda g: g[2])
+        firsts = [st.first_t_ns for st in self.stats.values() if st.first_t_ns is not None]
+        t0 = min(firsts) if firsts else start
+        more = f" ({len(found) - 1} more)" if len(found) > 1 else ""
+        raise UserError(
+            f"{self.path}: no {what} for {length / NS:.1f} s, from {(start - t0) / NS:.1f} s to "
+            f"{(start + length - t0) / NS:.1f} s into the log (stamps {start / NS:.3f} to {(start + length) / NS:.3f})"
+            f"{more}: a clock jump or a pause longer than the odometry can bridge (ingest.max_gap_s="
+            f"{self.p.max_gap_s:g} s); cut the log there (e.g. with `rosbag filter`) or raise ingest.max_gap_s")
 
 
     def _report_clocks_and_gaps(self) -> None:
@@ -506,7 +538,7 @@ class _Ingest:
         if radar.scans_without_points:
             ctx.warn(f"radar: {radar.scans_without_points} of {radar.messages} scan(s) hold no points "
                      f"({radar.empty_messages} published empty)")
-        for a, d, e in self.gaps[:5]:
+        for a, d, e in [g for g in self.gaps if g[1] <= self.p.max_gap_s * NS][:5]:
             ctx.warn(f"radar: no points for {d / NS:.2f} s from {(a - (radar.first_t_ns or a)) / NS:.2f} s into the "
                      f"radar stream (stamp {a / NS:.3f}, {e} empty scan(s)); odometry dead-reckons through it")
         if len(self.gaps) > 5:

@@ -69,7 +69,8 @@ class OdometryParams(StageParams):
     gate_probability: float = Field(0.999, gt=0, lt=1, description="chi-square gate of the velocity update")
     zero_rate_update: bool = Field(True, description="zero angular-rate update on zero-velocity scans")
     zero_rate_sigma: float = Field(0.002, gt=0, description="std of the zero angular-rate pseudo-measurement, rad/s")
-    zero_rate_min_scans: int = Field(5, ge=1, description="consecutive zero-velocity scans before a zero-rate update")
+    zero_rate_min_scans: int = Field(5, ge=1, le=100_000,
+                                     description="consecutive zero-velocity scans before a zero-rate update")
     init_motion_compensation: bool = Field(
         True, description="remove the kinematic acceleration (from the first ego-velocities) before gravity alignment")
     standstill_init: bool = Field(True, description="start from an initial standstill when there is one (attitude, "
@@ -83,7 +84,8 @@ class OdometryParams(StageParams):
                                                                    "specific force from the first window, m/s^2")
     standstill_gyro_change: float = Field(0.01, gt=0, description="standstill: largest change of the mean rate "
                                                                   "from the first window, rad/s")
-    recover_after: int = Field(3, ge=1, description="velocity updates rejected in a row before the covariance is "
+    recover_after: int = Field(3, ge=1, le=100_000,
+                               description="velocity updates rejected in a row before the covariance is "
                                                     "inflated and the update retried")
     recover_consistent: bool = Field(True, description="recover only when the rejected velocity innovations agree "
                                      "with one another (the filter is off); scattered ones are the radar's outliers "

@@ -27,15 +27,16 @@ class PatchesParams(StageParams):
 
     a: float = Field(4.0, gt=0, description="seed multiplier: t = floor(a * n_R / N_R) seeds, at least 1 "
                      "(4 at test, 16 for training)")
-    n_radar: int = Field(2048, ge=1, description="radar points per patch (N_R)")
-    n_lidar: int = Field(8192, ge=1, description="lidar points per patch (N_L)")
-    outlier_neighbors: int = Field(20, ge=0, description="statistical outlier removal on the radar map: k (0 = off)")
+    n_radar: int = Field(2048, ge=1, le=1_048_576, description="radar points per patch (N_R)")
+    n_lidar: int = Field(8192, ge=1, le=4_194_304, description="lidar points per patch (N_L)")
+    outlier_neighbors: int = Field(20, ge=0, le=1000,
+                                   description="statistical outlier removal on the radar map: k (0 = off)")
     outlier_std_ratio: float = Field(2.0, gt=0, description="drop radar points whose mean k-NN distance exceeds "
                                      "the map mean by this many standard deviations")
     norm_scale: float = Field(0.0, ge=0, description="normalisation scale (m); 0 = per patch, the radar patch's "
                               "largest distance from its seed")
     seed: int = Field(0, description="seed of the FPS start point and of the padding draws")
-    rerun_patches: int = Field(8, ge=0, description="patches logged to Rerun")
+    rerun_patches: int = Field(8, ge=0, le=10_000, description="patches logged to Rerun")
 
 
 class PatchesStage(Stage):

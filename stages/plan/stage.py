@@ -37,7 +37,7 @@ class PlanParams(StageParams):
                                      "pose farthest from the start")
     strategies: list[Literal["greedy", "uncertainty"]] = Field(
         ["greedy", "uncertainty"], description="cost strategies of eq. 35 to plan with")
-    grid_spacing: float = Field(0.25, gt=0, description="spacing of the occupancy grid queried for A* (m)")
+    grid_spacing: float = Field(0.25, ge=0.01, description="spacing of the occupancy grid queried for A* (m)")
     o_max: float = Field(0.6, gt=0, lt=1, description="occupancy bound o_max of eq. 34 (eq. 28 occupancy); "
                          "grid cells above it are A* obstacles")
     d_max: float = Field(1.0, gt=0, description="step bound d_max of eq. 34 (m)")
@@ -48,8 +48,9 @@ class PlanParams(StageParams):
     eps: float = Field(1e-3, gt=0, description="epsilon of the uncertainty-aware cost (eq. 35)")
     domain_margin: float = Field(0.5, ge=0, description="distance kept from the Hilbert domain's edge (m): the "
                                  "domain bound Omega of eq. 34")
-    max_iter: int = Field(300, ge=1, description="SLSQP iteration limit")
-    blas_threads: int = Field(1, ge=0, description="BLAS threads while planning (0: leave the library's default); "
+    max_iter: int = Field(300, ge=1, le=1_000_000, description="SLSQP iteration limit")
+    blas_threads: int = Field(1, ge=0, le=256,
+                              description="BLAS threads while planning (0: leave the library's default); "
                               "the matrices are small, and a multi-threaded BLAS on a busy machine spins")
 
     @model_validator(mode="after")

@@ -14,8 +14,9 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -25,6 +26,10 @@ from pydantic import Field, ValidationError, model_validator
 
 from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams
+
+if TYPE_CHECKING:
+    from pipeline.sequences import SequenceInfo
+
 from schemas.artifacts import ODOMETRY_COV_COLS, ODOMETRY_COV_IDX
 from schemas.io import read_artifact, write_artifact
 from stages.slam import hilbert_map as hm
@@ -65,18 +70,18 @@ class SlamParams(StageParams):
     methods: list[Method] = Field(list(METHODS), description="methods run and written as "
                                   "trajectory_<method>.parquet (the main method always runs; rich_slam_paper is the "
                                   "paper's configuration, the reference row)")
-    n_particles: int = Field(200, ge=1, description="particles N_p (Sec. V-A2)")
+    n_particles: int = Field(200, ge=1, le=100_000, description="particles N_p (Sec. V-A2)")
     seed: int = Field(0, description="seed of the particle filter's random generator")
     # -- Hilbert-GP map (Table II)
     lengthscale: float = Field(20.0, gt=0, description="SE length scale l in map units (Table II: 20)")
-    length_unit_m: float = Field(0.1, gt=0, description="metres per map unit: l in metres = lengthscale * this "
+    length_unit_m: float = Field(0.1, gt=0, le=100, description="metres per map unit: l in metres = lengthscale * this "
                                  "(README: decimetres reproduce the paper's maps; 1.0 = literal metres)")
     signal_variance: float = Field(16.0, gt=0, description="sigma_f^2 (Table II: 16 ColoRadar, 0.7 ARS548)")
     noise_variance: float = Field(0.36, gt=0, description="sigma_n^2 (Table II: 0.36 ColoRadar, 0.1 ARS548)")
     endpoint_noise_variance: float | None = Field(
         None, gt=0, description="sigma_n^2 of the endpoints' +1 labels in the map update (free samples keep "
         "noise_variance); unset: one value, the paper (issue 17 lever; measured in stages/slam/README.md)")
-    n_basis: int = Field(256, ge=1, description="basis functions M (a perfect square for the tensor basis)")
+    n_basis: int = Field(256, ge=1, le=4096, description="basis functions M (a perfect square for the tensor basis)")
     basis_kind: Literal["tensor", "circular"] = Field("tensor", description="'tensor': eq. 7; 'circular': the M "
                                                       "smallest eigenvalues (Solin and Sarkka's code)")
     domain_padding: float = Field(10.0, ge=0, description="Hilbert domain = odometry envelope padded by this (m)")
@@ -86,7 +91,8 @@ class SlamParams(StageParams):
         "against each (hybrid); rich_slam_paper and rich_slam_refined: always global")
     submap_half_width: float = Field(9.0, gt=0, description="submaps: half width of each square submap (m); must "
                                      "exceed max_range + endpoint_tolerance + 0.5")
-    submap_n_basis: int = Field(256, ge=1, description="submaps: basis functions per submap (a perfect square for "
+    submap_n_basis: int = Field(256, ge=1, le=4096,
+                                description="submaps: basis functions per submap (a perfect square for "
                                 "the tensor basis)")
     submap_lengthscale: float = Field(10.0, gt=0, description="submaps: SE length scale in map units (10 dm = 1 m)")
     submap_keep_closed: bool = Field(False, description="submaps: keep closed submaps (each particle's mean map) "
@@ -94,13 +100,14 @@ class SlamParams(StageParams):
                                      "place seen again is weighed against its first visit (loop closure)")
     map_update: Literal["kalman", "laplace"] = Field("kalman", description="map update: Kalman (eq. 15-19) or "
                                                      "recursive Laplace (Appendix)")
-    laplace_iterations: int = Field(20, ge=1, description="Newton iterations of the Laplace update at most")
+    laplace_iterations: int = Field(20, ge=1, le=1000, description="Newton iterations of the Laplace update at most")
     map_form: Literal["auto", "information", "covariance"] = Field(
         "auto", description="particle map storage: covariance (eq. 15-19 literally; cheaper for sparse scans), "
         "information matrix with its Cholesky factor (same posterior; cheaper for dense scans), or auto (by a "
         "cost model at the sequence's samples per scan)")
     dtype: Literal["float64", "float32"] = Field("float64", description="precision of the particle maps")
-    workers: int = Field(2, ge=0, description="worker processes sharing the particle maps (information form), one "
+    workers: int = Field(2, ge=0, le=256,
+                         description="worker processes sharing the particle maps (information form), one "
                          "BLAS thread each; 0 = in process (numpy backend)")
     backend: Literal["numpy", "torch"] = Field(
         "numpy", description="array backend of the RICH-SLAM particle maps and filter loop: numpy (CPU, worker "
@@ -108,12 +115,12 @@ class SlamParams(StageParams):
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="device of the torch backend: cuda, cpu, or auto (cuda when torch sees one, else cpu; "
         "the fallback is logged); numpy runs on the cpu")
-    torch_threads: int = Field(1, ge=0, description="CPU threads of the torch backend on the cpu (0 = torch's "
+    torch_threads: int = Field(1, ge=0, le=256, description="CPU threads of the torch backend on the cpu (0 = torch's "
                                "default, one per core; one thread is far faster on a shared machine, README)")
     # -- measurements (Sec. IV-B, Fig. 3a)
     max_range: float = Field(5.0, gt=0, description="beams longer than this are dropped (m, Table II)")
     min_range: float = Field(0.0, ge=0, description="beams shorter than this are dropped (m)")
-    ray_step: float = Field(1.0, gt=0, description="free-sample spacing along a beam (m, Table II)")
+    ray_step: float = Field(1.0, ge=0.01, description="free-sample spacing along a beam (m, Table II)")
     free_clearance: float = Field(0.0, ge=0, description="no free sample closer than this to the endpoint (m)")
     z_min: float | None = Field(None, description="keep points with base-frame z >= z_min (m); None: no gate")
     z_max: float | None = Field(None, description="keep points with base-frame z <= z_max (m); None: no gate")
@@ -122,8 +129,8 @@ class SlamParams(StageParams):
         0.0, ge=0, description="endpoint tolerance radius r_e (m, eq. 29; the paper: 0.25); 0 = off, chosen on the "
         "calibration runs (stop 39, stages/slam/README.md); rich_slam_paper always takes the paper's 0.25 and "
         "rich_slam_no_et always 0")
-    et_ring_points: int = Field(8, ge=1, description="points on each ring of the discretised r_e disc")
-    et_rings: int = Field(1, ge=1, description="rings of the discretised r_e disc")
+    et_ring_points: int = Field(8, ge=1, le=64, description="points on each ring of the discretised r_e disc")
+    et_rings: int = Field(1, ge=1, le=16, description="rings of the discretised r_e disc")
     et_variance: Literal["exact", "taylor"] = Field(
         "taylor", description="variance at the tolerance points: with Phi linearised about the endpoint (the mean "
         "stays exact; log weights within 0.003 of the exact ones on the demo, README), or exact Phi^T cov Phi (slower)")
@@ -144,7 +151,8 @@ class SlamParams(StageParams):
                               "from a FastSLAM occupancy grid each particle carries beside its Hilbert map (the "
                               "detail M basis functions cannot hold on a large domain); 0: the paper's Hilbert "
                               "weight alone (rich_slam_paper always)")
-    map_delay: int = Field(0, ge=0, description="rich_slam: weigh each scan against the particle's map without its "
+    map_delay: int = Field(0, ge=0, le=100_000,
+                           description="rich_slam: weigh each scan against the particle's map without its "
                            "last map_delay scans, which agree with the particle's heading right or wrong "
                            "(stages/slam/delayed_maps.py); 0: the paper's map of every earlier scan")
     outlier: float = Field(0.0, ge=0, lt=1, description="probability that a radar sample is not explained by the "
@@ -157,7 +165,8 @@ class SlamParams(StageParams):
     free_weight: float = Field(1.0, ge=0, description="weight of the free samples' log terms against the endpoints' "
                                "in every Hilbert method's weight (1: the paper, eq. 23)")
     # -- pose refinement (rich_slam_refined, stages/slam/pose_refinement.py)
-    refine_iterations: int = Field(3, ge=1, description="rich_slam_refined: Gauss-Newton steps per scan on each "
+    refine_iterations: int = Field(3, ge=1, le=100,
+                                   description="rich_slam_refined: Gauss-Newton steps per scan on each "
                                    "particle's pose against its own map before weighting")
     refine_max_step_xy: float = Field(0.25, gt=0, description="rich_slam_refined: largest x, y step per iteration (m)")
     refine_max_step_yaw: float = Field(0.05, gt=0, description="rich_slam_refined: largest yaw step per iteration "
@@ -277,7 +286,7 @@ class SlamParams(StageParams):
                                            "log-likelihood in the registration covariance (points are not "
                                            "independent; chosen for a NEES near 3 on the calibration runs)")
     # -- FastSLAM grid baseline
-    grid_resolution: float = Field(0.1, gt=0, description="fastslam_grid cell size (m)")
+    grid_resolution: float = Field(0.1, ge=0.01, description="fastslam_grid cell size (m)")
     grid_l_occ: float = Field(0.85, gt=0, description="fastslam_grid log-odds added at an endpoint cell")
     grid_l_free: float = Field(-0.4, lt=0, description="fastslam_grid log-odds added along a beam")
     grid_l_clamp: float = Field(4.0, gt=0, description="fastslam_grid log-odds clamp (+-)")
@@ -290,11 +299,12 @@ class SlamParams(StageParams):
         3.0, gt=0, description="warn when a filter's heading leaves the odometry's by more than this many sigma of "
         "the odometry's accumulated heading uncertainty (stages/slam/divergence.py); the value is in the manifest "
         "either way")
-    grid_spacing: float = Field(0.25, gt=0, description="spacing of the query grid of map_grid.parquet (m)")
-    stats_every: int = Field(5, ge=1, description="map_stats.parquet: uncertainty quartiles every N scans")
-    stats_spacing: float = Field(1.0, gt=0, description="map_stats.parquet: spacing of the cells summarised (m)")
-    n_map_snapshots: int = Field(8, ge=0, description="occupancy / uncertainty images logged to Rerun")
-    image_spacing: float = Field(0.25, gt=0, description="pixel size of the Rerun map images (m)")
+    grid_spacing: float = Field(0.25, ge=0.01, description="spacing of the query grid of map_grid.parquet (m)")
+    stats_every: int = Field(5, ge=1, le=1_000_000,
+                             description="map_stats.parquet: uncertainty quartiles every N scans")
+    stats_spacing: float = Field(1.0, ge=0.01, description="map_stats.parquet: spacing of the cells summarised (m)")
+    n_map_snapshots: int = Field(8, ge=0, le=1000, description="occupancy / uncertainty images logged to Rerun")
+    image_spacing: float = Field(0.25, ge=0.01, description="pixel size of the Rerun map images (m)")
 
     @model_validator(mode="after")
     def _check(self) -> SlamParams:
@@ -413,6 +423,32 @@ class SlamStage(Stage):
     Params = SlamParams
     version = "3"
     outputs = ("trajectory.parquet", "map_posterior.parquet", "map_grid.parquet", "map_stats.parquet")
+
+    def memory_estimate(self, seq: SequenceInfo, params: StageParams,
+                        input_dirs: Mapping[str, Path]) -> tuple[int, str] | None:
+        """The particle maps of the largest method, twice over (resampling copies them): N_p x M^2 for a Hilbert
+        filter, N_p x cells for the grid filter over the odometry's envelope."""
+        p = cast(SlamParams, params)
+        methods = set(p.methods) | {p.method}
+        item = 4 if p.dtype == "float32" else 8
+        out: list[tuple[int, str]] = []
+        if methods & set(HILBERT_METHODS):
+            M = p.n_basis
+            out.append((2 * p.n_particles * (M * M + 2 * M) * item,
+                        f"slam.n_particles={p.n_particles} Hilbert maps of slam.n_basis={M}^2 {p.dtype}"))
+        if "fastslam_grid" in methods and "odometry" in input_dirs:
+            try:
+                t = pq.read_table(input_dirs["odometry"] / "odometry.parquet", columns=["x", "y"])
+                xy = np.column_stack([t["x"].to_numpy(), t["y"].to_numpy()])
+            except (OSError, KeyError, pa.ArrowInvalid):
+                xy = np.zeros((0, 2))
+            if len(xy) and np.all(np.isfinite(xy)):
+                half, _ = domain_from_trajectory(xy, p.domain_padding)
+                cells = float(np.prod(np.ceil(2 * half / p.grid_resolution)))
+                out.append((int(2 * p.n_particles * cells * 4),
+                            f"slam.n_particles={p.n_particles} grids of {cells:.3g} cells at "
+                            f"slam.grid_resolution={p.grid_resolution} m"))
+        return max(out) if out else None
 
     def run(self, ctx: StageContext) -> None:
         p: SlamParams = ctx.params

@@ -102,7 +102,7 @@ class VoxelParams(StageParams):
     radar_source: Literal["raw", "filtered"] = Field(
         "raw", description="radar points: ingest's raw radar.parquet (as the paper) or the filter stage's output"
     )
-    resolution: float = Field(0.15, gt=0, description="voxel edge length (m)")
+    resolution: float = Field(0.15, ge=0.01, description="voxel edge length (m)")
     prob_hit: float = Field(0.7, gt=0, lt=1, description="occupancy probability of a hit")
     prob_miss: float = Field(0.4, gt=0, lt=1, description="occupancy probability of a miss")
     radar_prob_miss: float | None = Field(
@@ -122,7 +122,7 @@ class VoxelParams(StageParams):
     )
     lidar_min_range: float = Field(0.0, ge=0, description="drop lidar points closer than this (m)")
     lidar_max_range: float = Field(20.0, ge=0, description="drop lidar points farther than this (m); 0 = no limit")
-    lidar_stride: int = Field(1, ge=1, description="insert every k-th lidar scan (speed)")
+    lidar_stride: int = Field(1, ge=1, le=1_000_000, description="insert every k-th lidar scan (speed)")
     lidar_discretize: bool = Field(
         False, description="cast one ray per distinct end voxel (OctoMap's discretize option: same hits, "
         "slightly different misses, faster on dense scans)"
