@@ -7,7 +7,7 @@ PIP := $(PY) -m pip
 TORCH_SPEC ?= torch==2.13.0
 SEQ ?= demo
 
-.PHONY: demo test bench lint clean-runs
+.PHONY: demo test bench faults lint clean-runs
 
 $(VENV)/bin/python:
 	$(PYTHON) -m venv $(VENV)
@@ -39,6 +39,9 @@ test: lint
 
 bench: $(VENV)/.stamp-dev
 	$(PY) -m benchmarks
+
+faults: $(VENV)/.stamp-run
+	OMP_NUM_THREADS=1 $(PY) -m benchmarks.fault_probe
 
 clean-runs:
 	rm -rf runs

@@ -26,6 +26,7 @@ from pipeline.sequences import SequenceInfo, expand_sequences, load_registry, se
 from pipeline.store import RunStore
 from pipeline.sweep import command as sweep_command
 from pipeline.tables import Column, print_listing
+from schemas.io import SchemaError
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -512,7 +513,7 @@ def main() -> None:
         # without standalone mode typer turns Ctrl-C (KeyboardInterrupt) into a returned Exit code 130, and
         # an explicit ``raise typer.Exit(n)`` into a returned n: both must become the process's exit status
         code = app(standalone_mode=False)
-    except UserError as exc:
+    except (UserError, SchemaError) as exc:
         console.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True, highlight=False)
         sys.exit(2)
     except typer.Abort:

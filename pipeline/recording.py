@@ -6,7 +6,6 @@ DESIGN.md (``world/radar/raw``, ``world/slam/trajectory``, ``metrics/<name>``, .
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -63,27 +62,15 @@ def scan_lengths(scan_ids: npt.NDArray[Any]) -> tuple[npt.NDArray[np.int64], npt
 class StageRecording:
     """A Rerun recording saved to one ``.rrd`` file.
 
-    The encoded stream is drained from Rerun and written by Python's file I/O (not Rerun's file sink, whose
-    background writer blocks for good on a full disk), so a write error is raised here, where it happened.
+    The encoded stream is kept by Rerun in memory (a stage's recording is megabytes) and written by Python's file
+    I/O when the stage closes it, not by Rerun's file sink, whose background writer blocks for good on a full
+    disk: a write error is raised here, where the runner turns it into a one-line message.
     """
-
-    #: bulk calls between drains of the encoded stream into the file
-    DRAIN_EVERY = 32
 
     def __init__(self, seq: str, path: str | Path) -> None:
         self.path = Path(path)
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id(seq), make_default=False)
-        self._stream = rr.binary_stream(recording=self.rec)
-        self._file: Any = self.path.open("wb")
-        self._calls = 0
-
-    def drain(self, force: bool = False) -> None:
-        self._calls += 1
-        if not force and self._calls % self.DRAIN_EVERY:
-            return
-        data = self._stream.read(flush=True)
-        if data:
-            self._file.write(data)
+        self._stream: rr.BinaryStream | None = rr.binary_stream(recording=self.rec)
 
     # -- bulk helpers ---------------------------------------------------------------------------------
     def points_over_time(
@@ -111,7 +98,6 @@ class StageRecording:
             indexes=time_columns(scans, t_ns),
             columns=rr.Points3D.columns(**kwargs).partition(lengths=lengths),
         )
-        self.drain()
 
     def points_by_scan(
         self,
@@ -155,13 +141,11 @@ class StageRecording:
         if values.size == 0:
             return
         self.rec.send_columns(entity, indexes=time_columns(scans, t_ns), columns=rr.Scalars.columns(scalars=values))
-        self.drain()
 
     def static_points(self, entity: str, positions: npt.ArrayLike, colors: npt.ArrayLike | None = None,
                       radii: float | None = None) -> None:
         positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
         self.rec.log(entity, rr.Points3D(positions, colors=colors, radii=radii), static=True)
-        self.drain()
 
     def log(self, entity: str, archetype: Any, scan: int | None = None, t_ns: int | None = None,
             static: bool = False) -> None:
@@ -171,27 +155,21 @@ class StageRecording:
         if t_ns is not None:
             self.rec.set_time("sensor_time", timestamp=np.datetime64(int(t_ns), "ns"))
         self.rec.log(entity, archetype, static=static)
-        self.drain()
 
     def close(self) -> None:
-        """Write everything still buffered to the file and release it; a write error (full disk) is raised."""
-        if self._file is None:
+        """Write the recording to its file and release it; a write error (a full disk) is raised."""
+        if self._stream is None:
             return
         try:
-            self.drain(force=True)
-            self._file.flush()
-            os.fsync(self._file.fileno())
+            data = self._stream.read(flush=True) or b""
+            self.path.write_bytes(data)
         finally:
             self.abort()
 
     def abort(self) -> None:
-        """Release the recording without writing what is still buffered (the stage failed)."""
-        if self._file is not None:
-            try:
-                self._file.close()
-            except OSError:
-                pass
-            self._file = None
+        """Release the recording without writing it (the stage failed)."""
+        if self._stream is not None:
+            self._stream = None
             self.rec.disconnect()
 
 

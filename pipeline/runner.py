@@ -37,6 +37,7 @@ from pipeline.resources import folder_size, free_space, human_bytes, is_disk_ful
 from pipeline.sequences import SequenceInfo
 from pipeline.stage import Stage, StageContext, StageParams
 from pipeline.store import RunStore, compute_key
+from schemas.io import SchemaError
 
 
 @dataclass
@@ -496,4 +497,6 @@ class Runner:
                 shutil.rmtree(tmp, ignore_errors=True)
             if isinstance(exc, Exception) and is_disk_full(exc):
                 raise self._disk_full(name) from None
+            if isinstance(exc, SchemaError):  # an input artifact that is not what it should be; the message says so
+                raise UserError(str(exc)) from None
             raise

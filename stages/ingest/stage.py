@@ -414,7 +414,6 @@ class _Ingest:
                                    radii=np.full(len(xyz), 0.04 if radar else 0.02, np.float32))
         self.ctx.recording.rec.send_columns(entity, indexes=index,
                                             columns=cols.partition(lengths=[len(b[2]) for b in buf]))
-        self.ctx.recording.drain(force=True)
 
     def _log_transforms(self, gt: tuple[npt.NDArray[np.int64], F64], calib: dict[str, Any]) -> None:
         """Ground truth as a path; sensor clouds placed in the world by ground truth (world <- sensor)."""

@@ -60,7 +60,10 @@ def _worker_main(conn: Connection, spec: _Spec) -> None:
     maps = HilbertParticleMaps(spec.basis, spec.hi - spec.lo, model, arrays=arrays)
     try:
         while True:
-            msg = conn.recv()
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):  # the parent is gone (killed): nothing to serve, leave quietly
+                break
             if msg is None:
                 break
             try:
