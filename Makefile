@@ -32,8 +32,8 @@ lint: $(VENV)/.stamp-dev
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
 
-# one BLAS thread per test: two threads spin against any other work on a 2-core machine (a submaps test took
-# 92 s alone with two and over 600 s beside two filter jobs; one thread is faster alone too)
+# one BLAS thread per test: two threads spin against any other work on a 2-core machine (one thread is faster
+# alone too)
 test: lint
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(PY) -m pytest -q
 

@@ -22,7 +22,6 @@ separate one-command script ``python -m benchmarks.slam_cuda`` (a GPU, a few min
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -33,7 +32,6 @@ from stages.slam.beam_sampling import BeamSamples, sample_beams
 from stages.slam.methods import SlamConfig, choose_form, make_hilbert_maps, step_flops
 from stages.slam.parallel import ParallelHilbertMaps
 from stages.slam.rbpf import RBPF, odometry_increments
-from stages.slam.submaps import SubmapModel, SubmapParticleMaps
 from stages.slam.synthetic import make_run
 
 AREA = "slam"
@@ -52,10 +50,9 @@ def _scans(beams: int, steps: int) -> tuple[Any, list[BeamSamples]]:
     return run, [sample_beams(s, [0.0, 0.0], 1.0, 5.0) for s in run.scans]
 
 
-def _time_filter(cfg: SlamConfig, beams: int, steps: int, M: int, refined: bool = False) -> dict[str, Any]:
+def _time_filter(cfg: SlamConfig, beams: int, steps: int, M: int) -> dict[str, Any]:
     """Seconds per step over ``steps`` scans after 3 warm-up steps (median, and mean with the
-    resampling steps' map copies: the sustained rate), and the modelled flops. ``refined``: with
-    rich_slam_refined's Gauss-Newton pose refinement before the weights (issue 17)."""
+    resampling steps' map copies: the sustained rate), and the modelled flops."""
     run, scans = _scans(beams, steps)
     basis = hm.make_basis([20.0, 16.0], [0.0, 0.0], M)
     form = choose_form(cfg, "rich_slam", scans, M)
@@ -63,15 +60,14 @@ def _time_filter(cfg: SlamConfig, beams: int, steps: int, M: int, refined: bool 
     u = odometry_increments(run.odometry)
     times = []
     try:
-        f = RBPF(maps, run.odometry[0], cfg.n_particles, cfg.noise, np.random.default_rng(0),
-                 refinement=cfg.refinement if refined else None, basis=basis)
+        f = RBPF(maps, run.odometry[0], cfg.n_particles, cfg.noise, np.random.default_rng(0))
         for i, s in enumerate(scans):
             t0 = time.perf_counter()
             f.step(u[i], s, first=i == 0)
             if i >= 3:
                 times.append(time.perf_counter() - t0)
     finally:
-        if isinstance(maps, ParallelHilbertMaps | SubmapParticleMaps):
+        if isinstance(maps, ParallelHilbertMaps):
             maps.close()
     n = float(np.mean([s.n for s in scans[3:]]))
     b = float(np.mean([len(s.endpoints) for s in scans[3:]]))
@@ -117,12 +113,9 @@ def run(quick: bool = False) -> list[Result]:
     steps = 8 if quick else 30
     cfg = SlamConfig()
     densities = (("sparse", 6), ("medium", 30), ("dense", 80))
-    main, torch_rows, refined, local = [], [], [], []
-    sub = replace(cfg, submaps=SubmapModel())  # slam.map = submaps at the stage's defaults
+    main, torch_rows = [], []
     for label, beams in densities:  # interleaved, the machine may be shared
         main.append((label, _time_filter(cfg, beams, steps, 256)))
-        refined.append(_time_filter(cfg, beams, steps, 256, refined=True))
-        local.append(_time_filter(sub, beams, steps, 256))
         torch_rows.append((label, _torch_cpu(beams, steps, (1, 2) if label == "medium" else (1,))))
     ref = max(ref0, _matmul_rate(size))  # the better of before and after: the machine may be shared
     out: list[Result] = [Result(AREA, "numpy matmul float64", ref, "GFLOP/s",
@@ -135,17 +128,6 @@ def run(quick: bool = False) -> list[Result]:
                           FRAME_S / r["mean"], ">= 1 (real time)", note))
         out.append(Result(AREA, f"GFLOP/s Np=200 M=256 {label}", r["gflops"], "GFLOP/s", "numpy matmul",
                           r["gflops"] / ref, ">= 0.5", note + " (modelled dominant flops, median step)"))
-    for (label, r), rr in zip(main, refined, strict=True):
-        out.append(Result(AREA, f"step Np=200 M=256 {label} rich_slam_refined", rr["mean"], "s/scan",
-                          "the same step without refinement", rr["mean"] / r["mean"], "<= 2 (issue 17)",
-                          f"{cfg.refinement.iterations} Gauss-Newton iterations ({cfg.refinement.objective}); "
-                          f"without: {r['mean']:.3f} s/scan in the same run"))
-    for (label, r), rl in zip(main, local, strict=True):
-        out.append(Result(AREA, f"step Np=200 M=256 {label} submaps", rl["mean"], "s/scan",
-                          "the same step on one global map", rl["mean"] / r["mean"], "<= 2 (issue 27)",
-                          "slam.map = submaps (half width 9 m, M = 256 each, at most 2 open: one weighed and "
-                          f"updated, one updated), 2 workers per submap; global: {r['mean']:.3f} s/scan in the "
-                          "same run"))
     for (label, r), (_, rt) in zip(main, torch_rows, strict=True):
         for threads, t in rt.items():
             out.append(Result(AREA, f"step Np=200 M=256 {label} torch cpu {threads} thread(s)", t["mean"], "s/scan",

@@ -20,8 +20,10 @@ from filelock import FileLock
 simulator = pytest.importorskip("simulator")
 ROOT = Path(__file__).resolve().parents[1]
 SEQ = "clirun"
-#: a short run: 6 s of the demo world, slam with few particles and only the method the README compares
-SLAM = ["--set", "slam.n_particles=5", "--set", "slam.n_basis=64", "--set", 'slam.methods=["odometry","rich_slam"]']
+#: a short run: 6 s of the demo world, slam with few particles, the default method (the README compares it) and
+#: one filter (long enough at 400 particles to be interrupted)
+SLAM = ["--set", "slam.n_particles=5", "--set", "slam.n_basis=64",
+        "--set", 'slam.methods=["odometry","radar_graph","rich_slam"]']
 
 
 def cli(*args: str, **kw: object) -> subprocess.CompletedProcess[str]:
@@ -83,20 +85,21 @@ def test_readme_evo_command_works_on_the_tum_export(run: tuple[Path, Path], tmp_
     out = tmp_path / "tum"
     r = cli("export", "--seq", SEQ, "--runs-dir", str(run[0]), "--format", "tum", "--out", str(out))
     assert r.returncode == 0, r.stderr
-    assert sorted(Path(p).name for p in r.stdout.split()) == ["groundtruth.tum", "odometry.tum", "rich_slam.tum"]
+    assert sorted(Path(p).name for p in r.stdout.split()) == ["groundtruth.tum", "odometry.tum", "radar_graph.tum",
+                                                              "rich_slam.tum"]
     assert "planar estimates without z" not in r.stderr  # 3D poses: the odometry's z, roll and pitch
-    odo, slam = (np.loadtxt(out / f"{n}.tum") for n in ("odometry", "rich_slam"))
-    np.testing.assert_array_equal(slam[:, 3], odo[:, 3])  # rich_slam's height is its odometry's
+    odo, slam = (np.loadtxt(out / f"{n}.tum") for n in ("odometry", "radar_graph"))
+    np.testing.assert_array_equal(slam[:, 3], odo[:, 3])  # the graph's height is its odometry's
     evo_ape = Path(sys.executable).with_name("evo_ape")
     if not evo_ape.exists():
         pytest.skip(f"no evo_ape beside {sys.executable} (install the dev extra)")
-    # exactly as the README prints it
-    res = subprocess.run([str(evo_ape), "tum", "groundtruth.tum", "rich_slam.tum", "-v"], cwd=out,
+    # 3D, without alignment (checked against evo's Python API below)
+    res = subprocess.run([str(evo_ape), "tum", "groundtruth.tum", "radar_graph.tum", "-v"], cwd=out,
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr
     found = re.search(r"Found (\d+) of max\. (\d+) possible matching timestamps", res.stdout)
     assert found, res.stdout
-    n_est = len(np.loadtxt(out / "rich_slam.tum"))
+    n_est = len(np.loadtxt(out / "radar_graph.tum"))
     n_gt = len(np.loadtxt(out / "groundtruth.tum"))
     # every ground-truth row is at an estimate stamp, and ground truth covers nearly all of the run
     assert int(found.group(1)) == int(found.group(2)) == n_gt and n_gt >= n_est - 2
@@ -107,18 +110,24 @@ def test_readme_evo_command_works_on_the_tum_export(run: tuple[Path, Path], tmp_
     from evo.tools import file_interface
 
     ref = file_interface.read_tum_trajectory_file(str(out / "groundtruth.tum"))
-    est = file_interface.read_tum_trajectory_file(str(out / "rich_slam.tum"))
+    est = file_interface.read_tum_trajectory_file(str(out / "radar_graph.tum"))
     ref, est = sync.associate_trajectories(ref, est)
     assert np.array_equal(ref.timestamps, est.timestamps)
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, est))
     # the CLI prints 6 decimals: equal to half a unit in the last printed digit
     assert ape.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(rmse, rel=0, abs=5.0000001e-7)
-    planar = subprocess.run([str(evo_ape), "tum", "groundtruth.tum", "rich_slam.tum", "--project_to_plane", "xy"],
+    planar = subprocess.run([str(evo_ape), "tum", "groundtruth.tum", "radar_graph.tum", "--project_to_plane", "xy"],
                             cwd=out, capture_output=True, text=True, timeout=120)
     assert planar.returncode == 0, planar.stdout + planar.stderr
     planar_rmse = float(re.search(r"rmse\s+([0-9.eE+-]+)", planar.stdout).group(1))  # type: ignore[union-attr]
     assert math.isfinite(planar_rmse) and planar_rmse < rmse  # the 3D error adds the height error
+    # exactly as the README prints it: aligned in the plane, at most the unaligned planar error
+    readme = subprocess.run([str(evo_ape), "tum", "groundtruth.tum", "radar_graph.tum", "--align", "--project_to_plane",
+                             "xy"], cwd=out, capture_output=True, text=True, timeout=120)
+    assert readme.returncode == 0, readme.stdout + readme.stderr
+    aligned = float(re.search(r"rmse\s+([0-9.eE+-]+)", readme.stdout).group(1))  # type: ignore[union-attr]
+    assert math.isfinite(aligned) and aligned <= planar_rmse + 1e-9
 
 
 def test_mcap_export_of_the_run_has_each_stamp_once(run: tuple[Path, Path], tmp_path: Path) -> None:

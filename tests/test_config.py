@@ -94,11 +94,8 @@ def test_shipped_workflows_load_and_name_real_parameters() -> None:
 
 # Where the default workflow may differ from a stage's own defaults, and why. Everything else it states must be
 # the stage's default: the tables (stages.slam.table3, benchmarks) run the stage defaults, and `pipeline run all`
-# must run what they measured (stop 49 re-fitted the fusion's models in the stage but not in the workflow, so
-# users ran the pre-stop-49 fusion until stop 58).
-INTENDED_WORKFLOW_DIFFERENCES = {
-    ("slam", "methods"): "rich_slam_refined (the Laplace proposal, 1.35x the cost per scan) is left out of a plain run",
-}
+# must run what they measured.
+INTENDED_WORKFLOW_DIFFERENCES: dict[tuple[str, str], str] = {}
 
 
 def test_the_default_workflow_runs_the_stage_defaults() -> None:

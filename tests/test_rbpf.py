@@ -17,14 +17,11 @@ from stages.slam.rbpf import (
     compose,
     effective_sample_size,
     hilbert_log_likelihood,
-    log_occupancy_terms,
     normalize_log_weights,
     odometry_increments,
     propagate,
-    restore_mean,
-    weighted_mean_pose,
-    wrap_angle,
 )
+from stages.slam.se2 import wrap_angle
 from stages.slam.synthetic import make_run
 
 
@@ -211,10 +208,12 @@ def test_filter_tracks_a_likelihood_and_ancestry_is_consistent() -> None:
     h = f.history
     assert any(h.resampled) and len(maps.selected) == sum(h.resampled)
     assert np.linalg.norm(h.best_trajectory()[-1, :2] - maps.target + [0.01, 0]) < 0.1
-    # the traced-back history is a chain of propagations: consecutive poses differ by ~ one step
-    hist = h.final_best_history()
-    np.testing.assert_array_equal(hist[-1], h.particles[-1][h.best_index[-1]])
-    steps = np.linalg.norm(np.diff(hist[:, :2], axis=0), axis=1)
+    # the ancestry is a chain of propagations: the final best particle's parents differ by ~ one step
+    k, hist = h.best_index[-1], []
+    for i in range(len(h.particles) - 1, -1, -1):
+        hist.append(h.particles[i][k])
+        k = int(h.parents[i][k])
+    steps = np.linalg.norm(np.diff(np.array(hist[::-1])[:, :2], axis=0), axis=1)
     assert steps.max() < 0.01 + 6 * 0.05 * np.sqrt(2)
     assert all(np.isfinite(h.n_eff)) and min(h.n_eff) >= 1 - 1e-9
 
@@ -307,11 +306,10 @@ def test_select_rows_equals_fancy_indexing_and_copies() -> None:
 
 
 @pytest.mark.parametrize("weighting", [HilbertWeighting(et_variance="taylor"), HilbertWeighting(et_variance="exact"),
-                                       HilbertWeighting(use_variance=False), HilbertWeighting(endpoint_tolerance=0.0),
-                                       HilbertWeighting(support_variance=8.0, exponent=0.5)])
+                                       HilbertWeighting(use_variance=False), HilbertWeighting(endpoint_tolerance=0.0)])
 def test_fused_blocked_step_equals_weight_then_update(weighting: HilbertWeighting) -> None:
     """``weigh_and_update`` (information form: one pass, blocks of particles) against ``log_likelihood``
-    followed by ``update`` on the unblocked maps (with common support: one mask over every block's particles)."""
+    followed by ``update`` on the unblocked maps."""
     rng = np.random.default_rng(12)
     b = hm.make_basis([8.0, 8.0], [0.0, 0.0], 64)
     fused = HilbertParticleMaps(b, 5, MapModel(1.5, 16.0, 0.36, weighting, form="information"))
@@ -350,176 +348,3 @@ def test_information_scan_whitens_in_place_and_refuses_non_contiguous_output() -
     np.testing.assert_allclose(means, np.einsum("knm,km->kn", rows[:, :2], theta), atol=1e-12)
     with pytest.raises(ValueError, match="C-contiguous"):
         st.scan(rows, out=np.asfortranarray(np.empty_like(rows)))
-
-
-@pytest.mark.parametrize("form", ["information", "covariance"])
-def test_endpoint_noise_variance_equals_batch_heteroscedastic_regression(form: str) -> None:
-    """Per-label sigma_n^2 (issue 17 lever): sequential updates of both map forms equal the batch
-    Bayesian regression ``cov = (Lambda^-1 + Phi^T R^-1 Phi)^-1``, ``theta = cov Phi^T R^-1 y`` with
-    ``R = diag(0.09 at endpoints, 0.36 at free samples)``, and differ from the one-noise map."""
-    rng = np.random.default_rng(11)
-    b = hm.make_basis([8.0, 8.0], [0.0, 0.0], 64)
-    w = HilbertWeighting()
-    het = HilbertParticleMaps(b, 3, MapModel(1.5, 16.0, 0.36, w, form=form,  # type: ignore[arg-type]
-                                             endpoint_noise_variance=0.09))
-    one = HilbertParticleMaps(b, 3, MapModel(1.5, 16.0, 0.36, w, form=form))  # type: ignore[arg-type]
-    rows: list[list[np.ndarray]] = [[] for _ in range(3)]
-    labels: list[np.ndarray] = []
-    for _ in range(12):
-        poses = np.column_stack([rng.uniform(-2, 2, (3, 2)), rng.uniform(-3, 3, 3)])
-        s = sample_beams(rng.uniform(-4, 4, (6, 2)), [0.1, 0.0], 1.0, 5.0)
-        het.log_likelihood(poses, s)  # the weighting's cached products must not change the update
-        het.update(poses, s)
-        one.update(poses, s)
-        for k in range(3):
-            rows[k].append(hm.features(b, to_world(poses[k], s.points)))
-        labels.append(s.labels)
-    y = np.concatenate(labels).astype(np.float64)
-    r = np.where(y > 0, 0.09, 0.36)
-    lam = hm.prior_variances(b, 1.5, 16.0)
-    for k in range(3):
-        phi = np.concatenate(rows[k])
-        cov = np.linalg.inv(np.diag(1.0 / lam) + phi.T @ (phi / r[:, None]))
-        theta = cov @ (phi.T @ (y / r))
-        got_theta, got_cov = het.map_of(k)
-        np.testing.assert_allclose(got_theta, theta, atol=1e-7)
-        np.testing.assert_allclose(got_cov, cov, atol=1e-9)
-        assert np.abs(one.map_of(k)[0] - theta).max() > 0.05  # the lever changes the map
-
-
-def test_endpoint_noise_fused_step_and_workers_equal_weight_then_update() -> None:
-    """With per-label noise the blocked step (and the worker processes) fall back to weighing, then updating."""
-    from stages.slam.parallel import ParallelHilbertMaps
-
-    rng = np.random.default_rng(12)
-    b = hm.make_basis([8.0, 8.0], [0.0, 0.0], 64)
-    ref = HilbertParticleMaps(b, 5, MapModel(1.5, 16.0, 0.36, HilbertWeighting(), endpoint_noise_variance=0.09))
-    fused = HilbertParticleMaps(b, 5, MapModel(1.5, 16.0, 0.36, HilbertWeighting(), endpoint_noise_variance=0.09))
-    with ParallelHilbertMaps(b, 5, MapModel(1.5, 16.0, 0.36, HilbertWeighting(), endpoint_noise_variance=0.09),
-                             workers=2) as par:
-        for _ in range(6):
-            poses = np.column_stack([rng.uniform(-2, 2, (5, 2)), rng.uniform(-3, 3, 5)])
-            s = sample_beams(rng.uniform(-4, 4, (6, 2)), [0.1, 0.0], 1.0, 5.0)
-            want = ref.log_likelihood(poses, s)
-            ref.update(poses, s)
-            np.testing.assert_allclose(fused.weigh_and_update(poses, s), want, rtol=1e-9, atol=1e-9)
-            np.testing.assert_allclose(par.log_likelihood(poses, s), want, rtol=1e-9, atol=1e-9)
-        for k in (0, 4):
-            np.testing.assert_allclose(fused.map_of(k)[1], ref.map_of(k)[1], atol=1e-12)
-            np.testing.assert_allclose(par.map_of(k)[1], ref.map_of(k)[1], atol=1e-9)
-
-
-def test_common_support_scores_every_particle_on_the_samples_all_have_seen() -> None:
-    """``common_support_total`` against a brute-force mask: a sample counts only if its predictive variance is below
-    ``support_variance`` for every particle; with a threshold above every variance it is the paper's weight."""
-    from dataclasses import replace
-
-    from stages.slam.rbpf import common_support_total
-
-    rng = np.random.default_rng(5)
-    b, theta, cov = _trained_maps(4, rng)
-    poses = np.column_stack([rng.uniform(-1, 1, (4, 2)), rng.uniform(-0.3, 0.3, 4)])
-    s = sample_beams(rng.uniform(-5, 5, (12, 2)), [0.1, 0.0], 0.8, 6.0)
-    w = HilbertWeighting(exponent=0.5)
-    terms, var = hilbert_log_likelihood(b, theta, cov, poses, s, w, per_sample=True)
-    assert terms.shape == var.shape == (4, s.n)
-    np.testing.assert_allclose(common_support_total(terms, var, w), hilbert_log_likelihood(b, theta, cov, poses, s, w))
-    cut = float(np.median(var.max(axis=0)))  # half the samples are below it for every particle
-    ws = replace(w, support_variance=cut)
-    seen = [i for i in range(s.n) if all(var[k, i] < cut for k in range(4))]
-    assert 0 < len(seen) < s.n
-    want = [0.5 * sum(terms[k, i] for i in seen) for k in range(4)]
-    np.testing.assert_allclose(common_support_total(terms, var, ws), want)
-    assert np.array_equal(common_support_total(terms, None, ws), common_support_total(terms, None, w))
-
-
-def test_common_support_parameter_runs_in_process_only() -> None:
-    from stages.slam.stage import SlamParams
-
-    with pytest.raises(ValueError, match="workers = 0"):
-        SlamParams(common_support=0.5)  # default workers = 2
-    cfg = SlamParams(common_support=0.5, workers=0).config()
-    assert cfg.support_variance == pytest.approx(0.5 * 16.0)
-    assert cfg.weighting("rich_slam").support_variance == pytest.approx(8.0)
-    assert cfg.for_method("rich_slam_paper").weighting("rich_slam_paper").support_variance is None
-
-
-class _NoiseMaps:
-    """Weights that know nothing: each particle's log-likelihood is a random draw, independent of its pose."""
-
-    def __init__(self, seed: int) -> None:
-        self.rng = np.random.default_rng(seed)
-
-    def log_likelihood(self, poses: np.ndarray, samples: BeamSamples) -> np.ndarray:
-        return self.rng.normal(0.0, 1.5, len(poses))
-
-    def update(self, poses: np.ndarray, samples: BeamSamples) -> None:
-        pass
-
-    def select(self, indices: np.ndarray) -> None:
-        pass
-
-
-def test_restore_mean_sets_the_first_moment_across_the_yaw_cut() -> None:
-    rng = np.random.default_rng(3)
-    p = np.c_[rng.normal(1.0, 0.2, (40, 2)), np.pi - 0.02 + rng.normal(0, 0.05, 40)]  # yaws straddle +-pi
-    target = np.array([1.3, 0.7, -np.pi + 0.01])
-    out, d = restore_mean(p, target)
-    m = weighted_mean_pose(out, np.full(40, 1 / 40))
-    np.testing.assert_allclose(m[:2], target[:2], atol=1e-12)
-    assert abs(wrap_angle(m[2] - target[2])) < 1e-12
-    np.testing.assert_allclose(np.diff(out - p, axis=0), 0.0, atol=1e-12)  # one shift for every particle
-    assert abs(d[2]) < 0.2  # the short way round, not 2 pi
-
-
-@pytest.mark.parametrize("keep", [False, True])
-def test_keep_mean_resampling(keep: bool) -> None:
-    """With keep_mean the cloud's mean after every resampling is the weighted mean before it; without it the
-    difference (resampling's Monte Carlo error) is recorded and is not zero."""
-    empty = sample_beams(np.zeros((0, 2)), [0, 0], 1.0, 5.0)
-    f = RBPF(_NoiseMaps(1), [0.0, 0.0, 0.0], 30, MotionNoise(0.05, 0.02), np.random.default_rng(2), keep_mean=keep)
-    for i in range(40):
-        f.step([0.1, 0.0, 0.01], empty, first=i == 0)
-        if f.history.resampled[-1]:
-            after = weighted_mean_pose(f.poses, np.full(f.n_particles, 1 / f.n_particles))
-            before = f.history.mean_pose[-1]
-            gap = np.r_[after[:2] - before[:2], wrap_angle(after[2] - before[2])]
-            np.testing.assert_allclose(gap, 0.0 if keep else f.history.resample_shift[-1], atol=1e-12)
-    shifts = np.asarray(f.history.resample_shift)
-    assert sum(f.history.resampled) == len(shifts) > 10
-    assert np.abs(shifts).max() > 1e-4  # the error that keep_mean removes exists
-
-
-def test_smoothed_trajectory_equals_brute_force_ancestry() -> None:
-    """The smoother's mean at scan k is the final-weighted mean of each final particle's ancestor at k, traced
-    one particle at a time; at the last scan it is the filter's weighted mean."""
-    empty = sample_beams(np.zeros((0, 2)), [0, 0], 1.0, 5.0)
-    f = RBPF(_NoiseMaps(4), [0.0, 0.0, 0.0], 20, MotionNoise(0.05, 0.02), np.random.default_rng(7))
-    for i in range(25):
-        f.step([0.1, 0.0, 0.02], empty, first=i == 0)
-    h = f.history
-    assert sum(h.resampled) > 3
-    sm = h.smoothed_trajectory()
-    w = h.final_weights
-    for k in (0, 7, 24):
-        anc = []
-        for j in range(len(w)):
-            a = j
-            for i in range(24, k, -1):
-                a = int(h.parents[i][a])
-            anc.append(h.particles[k][a])
-        np.testing.assert_allclose(sm[k], weighted_mean_pose(np.array(anc), w), atol=1e-12)
-    np.testing.assert_allclose(sm[-1], h.mean_trajectory()[-1], atol=1e-12)
-
-
-def test_outlier_mixture_bounds_each_sample_and_is_the_paper_at_zero() -> None:
-    rng = np.random.default_rng(9)
-    mean, var = rng.normal(0, 8, 200), rng.uniform(0, 30, 200)
-    o0, _ = log_occupancy_terms(mean, var)
-    o, f = log_occupancy_terms(mean, var, 0.1)
-    p = 1.0 / (1.0 + np.exp(-mean / np.sqrt(1.0 + np.pi / 8.0 * var)))  # eq. 28
-    np.testing.assert_allclose(np.exp(o0), p, rtol=1e-12)
-    np.testing.assert_allclose(np.exp(o), 0.9 * p + 0.05, rtol=1e-12)
-    np.testing.assert_allclose(np.exp(f), 0.9 * (1 - p) + 0.05, rtol=1e-12)
-    assert o.min() >= np.log(0.05) - 1e-12 and o0.min() < np.log(0.05) - 5  # a sample the map rules out is bounded
-    np.testing.assert_array_equal(log_occupancy_terms(mean, var, 0.0)[0], o0)

@@ -71,7 +71,7 @@ def test_shipped_sweep_workflows_expand_against_the_real_stages() -> None:
     from pipeline.registry import load_stages
 
     stages = load_stages()
-    for name, n in (("sweep_fig6", 21), ("sweep_fig7", 9), ("sweep_radar_only", 6)):
+    for name, n in (("sweep_fig6", 21), ("sweep_fig7", 9), ("sweep_radar_only", 7)):
         wf = load_workflow(name)
         assert wf.stages == ["evaluate"] and len(sweep_points(wf.sweep)) == n
         for p in sweep_points(wf.sweep):

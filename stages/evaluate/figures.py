@@ -13,14 +13,14 @@ F64 = npt.NDArray[np.float64]
 
 METHOD_COLOURS = {
     "odometry": "tab:orange", "fastslam_grid": "tab:green", "rich_slam": "tab:red",
-    "rich_slam_no_et": "tab:purple", "rich_slam_refined": "tab:brown", "rich_slam_mean_only": "tab:pink",
-    "rich_slam_paper": "tab:olive", "hilbert_gp": "tab:red", "rff": "tab:blue", "sparse": "tab:green",
+    "rich_slam_no_et": "tab:purple", "rich_slam_mean_only": "tab:pink", "radar_graph": "tab:blue",
+    "hilbert_gp": "tab:red", "rff": "tab:blue", "sparse": "tab:green",
     "nystrom": "tab:orange", "grid": "tab:gray",
 }
 METHOD_LABELS = {
     "odometry": "odometry", "fastslam_grid": "FastSLAM (grid)", "rich_slam": "RICH-SLAM",
-    "rich_slam_no_et": "RICH-SLAM w/o ET", "rich_slam_refined": "RICH-SLAM + pose refinement",
-    "rich_slam_mean_only": "RICH-SLAM mean only", "rich_slam_paper": "RICH-SLAM (paper config)",
+    "rich_slam_no_et": "RICH-SLAM w/o ET", "rich_slam_mean_only": "RICH-SLAM mean only",
+    "radar_graph": "radar pose graph",
     "hilbert_gp": "HILBERT-GP (Kalman)", "rff": "RFF (SGD)",
     "sparse": "SPARSE (SGD)", "nystrom": "NYSTRÖM (SGD)", "grid": "count grid",
 }
@@ -245,43 +245,6 @@ def plot_table3(path: Path, results: Mapping[str, Mapping[str, Sequence[tuple[fl
     fig.suptitle(title or "Table III: yaw RMSE (bar: mean over seeds, dots: seeds; text: position RMSE"
                  + ("; black line: the paper's value" if paper else "") + ")",
                  fontsize=10)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def plot_gain_vs_drift(path: Path, points: Sequence[tuple[str, float, Sequence[float], bool]],
-                       title: str = "", method: str = "rich_slam") -> Path:
-    """A filter's yaw RMSE over the odometry's (one point per sequence: the mean over seeds, a bar over their
-    range) against how far the odometry's heading error over a window exceeds its own covariance
-    (``odometry.metrics.heading_window_nees``, log scale). ``points``: (sequence, window NEES, per-seed ratios,
-    open world?)."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(8.5, 5.2), constrained_layout=True)
-    for name, nees, ratios, open_world in points:
-        r = np.asarray(ratios, np.float64)
-        mk, col = ("s", "tab:blue") if open_world else ("o", colour(method))
-        ax.errorbar([nees], [r.mean()], yerr=[[r.mean() - r.min()], [r.max() - r.mean()]], fmt=mk, color=col,
-                    ms=6, capsize=3)
-        ax.annotate(name.replace("coloradar_", "CR").replace("_twin", "t").replace("sim_", ""), (nees, r.mean()),
-                    textcoords="offset points", xytext=(5, 3), fontsize=7)
-    ax.axhline(1.0, color="black", lw=0.8)
-    ax.axhline(0.7, color="gray", lw=0.8, ls="--")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    lo, hi = ax.get_ylim()
-    ticks = [t for t in (0.3, 0.5, 0.7, 1, 1.5, 2, 3, 5, 8, 12) if lo <= t <= hi]
-    ax.set_yticks(ticks, [f"{t:g}" for t in ticks])
-    ax.minorticks_off()
-    ax.set_xlabel("odometry heading NEES over 10 s windows (1: its covariance is honest over the window)")
-    ax.set_ylabel(f"{label(method)} yaw RMSE / odometry yaw RMSE")
-    ax.plot([], [], "o", color=colour(method), label="structured world")
-    ax.plot([], [], "s", color="tab:blue", label="open world (outdoors)")
-    ax.plot([], [], color="black", lw=0.8, label="no better than the odometry")
-    ax.plot([], [], color="gray", lw=0.8, ls="--", label="30 % below it (issue 27's drifting target)")
-    ax.legend(fontsize=8, loc="upper right")
-    if title:
-        ax.set_title(title, fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -15,7 +15,7 @@ from stages.evaluate.rich_slam_paper import PAPER_METHODS, TABLE_III, paper_sequ
 Record = Mapping[str, Any]
 
 TRAJECTORY_METHODS = ("odometry", "fastslam_grid", "rich_slam_no_et", "rich_slam_mean_only", "rich_slam",
-                      "rich_slam_refined", "rich_slam_paper")
+                      "radar_graph")
 AUC_METHODS = ("hilbert_gp", "rff", "sparse", "nystrom")
 DDIST = ("ddist_p50", "ddist_p75", "ddist_p90", "ddist_p95")
 RMAP_COLUMNS = (("cd_l1", "CD-l1 [m]"), ("cd_l2", "CD-l2 [m²]"), ("fscore_0.15", "F-score@0.15"),

@@ -160,15 +160,14 @@ def occupancy_probability(grid: npt.ArrayLike) -> F64:
 class GridParticleMaps:
     """One log-odds grid per particle, stacked ``(Np, ny, nx)`` float32."""
 
-    def __init__(self, spec: GridSpec, n_particles: int, model: GridModel, exponent: float = 1.0) -> None:
+    def __init__(self, spec: GridSpec, n_particles: int, model: GridModel) -> None:
         self.spec = spec
         self.model = model
-        self.exponent = exponent
         self.grids = np.zeros((n_particles, *spec.shape), dtype=np.float32)
 
     def log_likelihood(self, poses: F64, samples: BeamSamples) -> F64:
         ends = to_world(poses, samples.endpoints)
-        return self.exponent * likelihood_field_log_likelihood(self.grids, self.spec, ends, self.model)
+        return likelihood_field_log_likelihood(self.grids, self.spec, ends, self.model)
 
     def update(self, poses: F64, samples: BeamSamples) -> None:
         if len(samples.endpoints) == 0:

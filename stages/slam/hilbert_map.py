@@ -274,15 +274,6 @@ def prior_variance_at(basis: HilbertBasis, prior_diag: npt.ArrayLike, points: np
 # -- updates ---------------------------------------------------------------------------------------------
 
 
-def label_noise_variance(labels: FloatArray, noise_variance: float,
-                         endpoint_noise_variance: float | None = None) -> FloatArray | float:
-    """sigma_n^2 of each sample in eq. 15: ``endpoint_noise_variance`` for the +1 labels when it is set
-    (the free samples keep ``noise_variance``), else the one value of the paper."""
-    if endpoint_noise_variance is None:
-        return noise_variance
-    return np.where(np.asarray(labels) > 0, endpoint_noise_variance, noise_variance)
-
-
 def kalman_update(
     theta: FloatArray,
     cov: FloatArray,

@@ -13,7 +13,6 @@ from __future__ import annotations
 import itertools
 import multiprocessing as mp
 import os
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
 from multiprocessing.shared_memory import SharedMemory
@@ -50,8 +49,7 @@ def _attach(name: str, shape: tuple[int, ...], dtype: str) -> tuple[SharedMemory
 
 def _worker_main(conn: Connection, spec: _Spec) -> None:
     """Serve requests on particles ``[lo, hi)`` until ``None``: ``("step", poses, points, labels, beam, origin)``
-    (weights and update), ``("update", ...)`` (the update alone) and ``("reset", basis)`` (the parent has put
-    the prior of a new basis with the same M in the shared arrays)."""
+    (the weights and the map update of a scan)."""
     Np, M = spec.n_particles, spec.M
     shapes = [(Np, M), (Np, M, M), (Np, M)]  # theta, info or cov, eta
     blocks = [_attach(name, shape, spec.dtype) for name, shape in zip(spec.names, shapes, strict=False)]
@@ -67,17 +65,9 @@ def _worker_main(conn: Connection, spec: _Spec) -> None:
             if msg is None:
                 break
             try:
-                if msg[0] == "reset":
-                    maps = HilbertParticleMaps(msg[1], spec.hi - spec.lo, model, arrays=arrays)
-                    conn.send(("ok", None))
-                    continue
-                kind, poses, points, labels, beam, origin = msg
+                _kind, poses, points, labels, beam, origin = msg
                 samples = BeamSamples(points, labels, beam, points[labels > 0], origin)
-                if kind == "update":
-                    maps.update(poses, samples)
-                    conn.send(("ok", None))
-                else:
-                    conn.send(("ok", maps.weigh_and_update(poses, samples)))
+                conn.send(("ok", maps.weigh_and_update(poses, samples)))
             except Exception as exc:  # report, keep serving
                 conn.send(("error", f"{type(exc).__name__}: {exc}"))
     finally:
@@ -164,13 +154,6 @@ class ParallelHilbertMaps:
             self.cov[...] = cov0
             self.cstack = StackedCovariance(np.diag(cov0), n_particles, self.dtype, array=self.cov)
 
-    def reset(self, basis: hm.HilbertBasis) -> None:
-        """Start again from the prior on a new ``basis`` with the same M (a new submap in the same processes)."""
-        if basis.M != self.theta.shape[1]:
-            raise ValueError(f"reset to a basis of M = {basis.M}, these maps hold M = {self.theta.shape[1]}")
-        self._prior(basis)
-        self._round_trip([("reset", basis)] * len(self._conns))
-
     def _round_trip(self, messages: list[Any]) -> list[Any]:
         for c, msg in zip(self._conns, messages, strict=True):
             c.send(msg)
@@ -203,11 +186,6 @@ class ParallelHilbertMaps:
 
     def update(self, poses: F64, samples: BeamSamples) -> None:
         """Done by the workers together with the weights."""
-
-    def insert(self, poses: F64, samples: BeamSamples) -> None:
-        """The map update alone, without weights (a submap that is built but not weighed against)."""
-        if samples.n:
-            self._round_trip(self._scan_messages("update", poses, samples))
 
     def select(self, indices: npt.NDArray[np.int64]) -> None:
         """Resample the shared maps in place (only the rows that change are copied)."""
@@ -248,17 +226,3 @@ class ParallelHilbertMaps:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def submap_factory(n_particles: int, model: MapModel, workers: int
-                   ) -> Callable[[hm.HilbertBasis, Any], ParallelHilbertMaps]:
-    """Particle maps of a new submap (``submaps.SubmapParticleMaps``) in ``workers`` processes: a closed
-    submap's maps (``spare``) are reset to the new basis, so the processes start once per open submap."""
-
-    def make(basis: hm.HilbertBasis, spare: Any) -> ParallelHilbertMaps:
-        if isinstance(spare, ParallelHilbertMaps):
-            spare.reset(basis)
-            return spare
-        return ParallelHilbertMaps(basis, n_particles, model, workers=workers)
-
-    return make

@@ -1,15 +1,14 @@
-"""`radar_graph`: a keyframe pose graph with radar registration and verified loop closures. Pure numpy + GTSAM.
+"""`radar_graph`: a keyframe pose graph with radar-verified loop closures. Pure numpy + GTSAM.
 
 The odometry (EKF-RIO) gives keyframes by distance and angle travelled and a relative-pose factor between
 consecutive keyframes with its own increment covariance, propagated along the scans. Each keyframe holds the
 radar endpoints of the scans nearest to it, accumulated along the odometry into the keyframe's frame (single TI
-scans hold 30-100 points). A front end registers each keyframe's cloud against a local map of the preceding
-keyframes (:mod:`registration`, a correlative scan matcher whose search gives the covariance): a registration
-factor between consecutive keyframes. Loop closures are proposed between keyframes that are close in the front
-end's estimate but far apart along the path, verified by registration with a wide yaw search, and optimised with
-graduated non-convexity (GTSAM's GNC with a truncated quadratic, the odometry and registration factors known
-inliers), which drops a wrong closure. Every scan's pose is its odometry pose moved by the correction of its two
-keyframes, interpolated on SE(2).
+scans hold 30-100 points). Loop closures are proposed between keyframes that are close in the odometry's
+estimate but far apart along the path, verified by registration of their local clouds with a wide yaw search
+(:mod:`registration`, a correlative scan matcher whose search gives the covariance), and optimised with
+graduated non-convexity (GTSAM's GNC with a truncated quadratic, the odometry factors known inliers), which drops
+a wrong closure. Every scan's pose is its odometry pose moved by the correction of its two keyframes,
+interpolated on SE(2).
 """
 
 from __future__ import annotations
@@ -32,23 +31,19 @@ GTSAM_INSTALL = "pip install gtsam"
 
 @dataclass(frozen=True)
 class GraphModel:
-    """Keyframes, registration, loop closures and the optimiser of :func:`optimise_graph`."""
+    """Keyframes, loop closures and the optimiser of :func:`optimise_graph`."""
 
     keyframe_distance: float = 1.0  # m travelled between keyframes
     keyframe_angle_deg: float = 15.0  # or this much turned
-    local_keyframes: int = 10  # keyframes in the local map a keyframe is registered against
-    search_xy: float = 0.5  # m, the front end's translation search around the odometry's guess
-    search_yaw_deg: float = 5.0  # the front end's yaw search
-    min_points: int = 30  # a keyframe cloud with fewer endpoints gets no registration factor
-    min_inliers: float = 0.5  # share of a cloud's points matched for a registration to stand
-    loop_radius: float = 3.0  # m: keyframes this close in the front end's estimate are loop candidates
+    local_keyframes: int = 10  # keyframes in the local cloud of each end of a loop closure
+    loop_radius: float = 3.0  # m: keyframes this close in the odometry's estimate are loop candidates
     loop_min_travel: float = 15.0  # m travelled between the two keyframes of a loop candidate
     loop_search_yaw_deg: float = 20.0  # the loop closure's yaw search
     loop_min_inliers: float = 0.6  # share of points matched for a closure to be proposed
+    min_points: int = 30  # fewest endpoints in either local cloud of a loop candidate
     loop_every: int = 2  # keyframes between loop searches of the same place
     robust: Literal["gnc", "none"] = "gnc"
     yaw_rate_sigma: float = 0.03  # rad/s: an unmodelled gyro bias, added to the odometry factors' yaw variance
-    registration: bool = False  # factors from each keyframe registered against the keyframes before it
     matcher: MatcherModel = field(default_factory=MatcherModel)
 
 
@@ -56,7 +51,7 @@ class GraphModel:
 class Edge:
     """A factor between keyframes ``i`` and ``j``: relative pose ``z`` (pose of ``j`` in ``i``'s frame)."""
 
-    kind: Literal["odometry", "registration", "loop"]
+    kind: Literal["odometry", "loop"]
     i: int
     j: int
     z: F64  # (3,)
@@ -74,7 +69,6 @@ class GraphResult:
     keyframe_poses: F64  # (K, 3) optimised
     keyframe_cov: F64  # (K, 3, 3) marginal covariances (body frame)
     edges: list[Edge]
-    registrations_failed: int = 0
     warnings: list[str] = field(default_factory=list)
 
     def count(self, kind: str, accepted: bool | None = None) -> int:
@@ -172,26 +166,6 @@ def local_cloud(poses: F64, clouds: list[F64], centre: int, members: range) -> F
     """The clouds of keyframes ``members`` placed by ``poses`` and expressed in keyframe ``centre``'s frame."""
     parts = [transform(between(poses[centre], poses[i]), clouds[i]) for i in members if len(clouds[i])]
     return np.concatenate(parts) if parts else np.zeros((0, 2))
-
-
-def registration_edges(poses: F64, clouds: list[F64], model: GraphModel) -> tuple[list[Edge], int]:
-    """Each keyframe registered against a local map of the ``local_keyframes`` before it, all placed by the
-    odometry (``poses``), with the odometry's relative pose as the guess: a factor between consecutive keyframes,
-    and the number of keyframes whose registration did not stand."""
-    edges: list[Edge] = []
-    failed = 0
-    for k in range(1, len(poses)):
-        ref = local_cloud(poses, clouds, k - 1, range(max(0, k - model.local_keyframes), k))
-        q = clouds[k]
-        if len(q) < model.min_points or len(ref) < model.min_points:
-            failed += 1
-            continue
-        m = match(ref, q, between(poses[k - 1], poses[k]), model.matcher, model.search_xy, model.search_yaw_deg)
-        if m.inliers < model.min_inliers:
-            failed += 1
-            continue
-        edges.append(Edge("registration", k - 1, k, m.pose, world_cov_to_body(m.pose, m.cov), m.inliers))
-    return edges, failed
 
 
 def travelled(keyframe_poses: F64) -> F64:
@@ -317,17 +291,12 @@ def optimise_graph(odometry: F64, cov: F64, t_s: F64, endpoints: Sequence[F64], 
     clouds = keyframe_clouds(odometry, endpoints, keyframes, model.matcher.resolution)
     odo = odometry_edges(odometry, cov, keyframes, np.asarray(t_s, np.float64), model.yaw_rate_sigma)
     poses = odometry[keyframes]
-    reg, failed = registration_edges(poses, clouds, model) if model.registration else ([], 0)
-    if failed:
-        warnings.append(f"{failed} of {len(keyframes) - 1} keyframes got no registration factor (fewer than "
-                        f"slam.min_points = {model.min_points} endpoints or under slam.min_inliers = "
-                        f"{model.min_inliers} of them matched): the odometry alone links them")
     loops = loop_closures(poses, clouds, model)
-    edges = [*odo, *reg, *loops]
+    edges = [*odo, *loops]
     opt, kcov, kept = optimise(poses, edges, model.robust)
     edges = [Edge(e.kind, e.i, e.j, e.z, e.cov, e.inliers, k) for e, k in zip(edges, kept, strict=True)]
     rejected = sum(e.kind == "loop" and not e.accepted for e in edges)
     if rejected:
         warnings.append(f"the optimiser rejected {rejected} of {len(loops)} loop closures (inconsistent with the "
                         "rest of the graph); graph_edges.parquet lists them with accepted = false")
-    return GraphResult(interpolate(odometry, keyframes, opt), keyframes, opt, kcov, edges, failed, warnings)
+    return GraphResult(interpolate(odometry, keyframes, opt), keyframes, opt, kcov, edges, warnings)

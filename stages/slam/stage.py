@@ -1,4 +1,5 @@
-"""`slam` stage: RICH-SLAM (RBPF with Hilbert-GP occupancy maps) and the baselines it is compared against.
+"""`slam` stage: radar_graph (a keyframe pose graph), RICH-SLAM (RBPF with Hilbert-GP occupancy maps) as the paper
+configures it, its ablations and the FastSLAM grid baseline.
 
 Inputs: ``ingest/calibration.json`` (``base_from_radar``), ``filter/radar_filtered.parquet`` (radar
 frame), ``odometry/odometry.parquet`` (world <- base at the radar scan times). Radar points go to the
@@ -12,7 +13,6 @@ Hilbert methods, else a Hilbert map built along its trajectory. Units: see READM
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
 import pyarrow.parquet as pq
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, model_validator
 
 from pipeline.errors import UserError
 from pipeline.stage import Stage, StageContext, StageParams
@@ -37,86 +37,56 @@ from stages.slam.backend import resolve_device
 from stages.slam.beam_sampling import BeamSamples, radar_to_body_2d, sample_beams, to_world
 from stages.slam.divergence import heading_deviation
 from stages.slam.grid_map import GridModel
-from stages.slam.heading_fusion import HeadingFusion
-from stages.slam.map_consistency import MapConsistency
 from stages.slam.methods import (
     GRAPH_METHODS,
     HILBERT_METHODS,
     METHODS,
-    PAPER_METHODS,
-    REFINED_METHODS,
-    Estimate,
+    PAPER_ENDPOINT_TOLERANCE,
     Method,
     MethodResult,
-    OdometryMotion,
     SlamConfig,
     domain_from_trajectory,
     run_method,
 )
 from stages.slam.pose_graph import GraphModel, GraphResult, optimise_graph
-from stages.slam.pose_refinement import PoseRefinement
-from stages.slam.rbpf import MotionNoise, WideMode, YawBias
+from stages.slam.rbpf import MotionNoise
 from stages.slam.registration import MatcherModel
-from stages.slam.submaps import SubmapModel
 
 F64 = npt.NDArray[np.floating[Any]]
 
 
 class SlamParams(StageParams):
-    """Parameters of the `slam` stage (defaults: RICH-SLAM Table II, ColoRadar profile)."""
+    """Parameters of the `slam` stage (defaults: RICH-SLAM Table II and Sec. IV, ColoRadar profile; radar_graph's
+    chosen on the calibration runs)."""
 
-    method: Method = Field("rich_slam", description="method whose trajectory is trajectory.parquet and whose "
-                           "map is written (odometry, fastslam_grid, rich_slam, rich_slam_no_et, rich_slam_mean_only)")
+    method: Method = Field("radar_graph", description="method whose trajectory is trajectory.parquet; the map "
+                           "outputs are built along it (a Hilbert method's best particle's own map)")
     methods: list[Method] = Field(list(METHODS), description="methods run and written as "
-                                  "trajectory_<method>.parquet (the main method always runs; rich_slam_paper is the "
-                                  "paper's configuration, the reference row)")
-    n_particles: int = Field(200, ge=1, le=100_000, description="particles N_p (Sec. V-A2)")
-    seed: int = Field(0, description="seed of the particle filter's random generator")
+                                  "trajectory_<method>.parquet (the main method always runs)")
+    n_particles: int = Field(200, ge=1, le=100_000, description="particles N_p of the filters (Sec. V-A2)")
+    seed: int = Field(0, description="seed of the particle filters' random generator")
     # -- Hilbert-GP map (Table II)
     lengthscale: float = Field(20.0, gt=0, description="SE length scale l in map units (Table II: 20)")
-    length_unit_m: float = Field(0.1, gt=0, le=100, description="metres per map unit: l in metres = lengthscale * this "
-                                 "(README: decimetres reproduce the paper's maps; 1.0 = literal metres)")
+    length_unit_m: float = Field(0.1, gt=0, le=100, description="metres per map unit: l in metres = lengthscale * "
+                                 "this (decimetres reproduce the paper's maps; 1.0 = literal metres)")
     signal_variance: float = Field(16.0, gt=0, description="sigma_f^2 (Table II: 16 ColoRadar, 0.7 ARS548)")
     noise_variance: float = Field(0.36, gt=0, description="sigma_n^2 (Table II: 0.36 ColoRadar, 0.1 ARS548)")
-    endpoint_noise_variance: float | None = Field(
-        None, gt=0, description="sigma_n^2 of the endpoints' +1 labels in the map update (free samples keep "
-        "noise_variance); unset: one value, the paper (issue 17 lever; measured in stages/slam/README.md)")
-    n_basis: int = Field(256, ge=1, le=4096, description="basis functions M (a perfect square for the tensor basis)")
-    basis_kind: Literal["tensor", "circular"] = Field("tensor", description="'tensor': eq. 7; 'circular': the M "
-                                                      "smallest eigenvalues (Solin and Sarkka's code)")
+    n_basis: int = Field(256, ge=4, le=4096, description="basis functions M (a perfect square: the tensor basis of "
+                         "eq. 7)")
     domain_padding: float = Field(10.0, ge=0, description="Hilbert domain = odometry envelope padded by this (m)")
-    map: Literal["global", "submaps", "hybrid"] = Field(
-        "global", description="the Hilbert filters' particle maps: one global map over the odometry's envelope (the "
-        "paper), local submaps that move with the robot (stages/slam/submaps.py), or both, each scan weighed half "
-        "against each (hybrid); rich_slam_paper and rich_slam_refined: always global")
-    submap_half_width: float = Field(9.0, gt=0, description="submaps: half width of each square submap (m); must "
-                                     "exceed max_range + endpoint_tolerance + 0.5")
-    submap_n_basis: int = Field(256, ge=1, le=4096,
-                                description="submaps: basis functions per submap (a perfect square for "
-                                "the tensor basis)")
-    submap_lengthscale: float = Field(10.0, gt=0, description="submaps: SE length scale in map units (10 dm = 1 m)")
-    submap_keep_closed: bool = Field(False, description="submaps: keep closed submaps (each particle's mean map) "
-                                     "and weigh a scan against the oldest submap whose window holds the robot, so a "
-                                     "place seen again is weighed against its first visit (loop closure)")
     map_update: Literal["kalman", "laplace"] = Field("kalman", description="map update: Kalman (eq. 15-19) or "
                                                      "recursive Laplace (Appendix)")
-    laplace_iterations: int = Field(20, ge=1, le=1000, description="Newton iterations of the Laplace update at most")
-    map_form: Literal["auto", "information", "covariance"] = Field(
-        "auto", description="particle map storage: covariance (eq. 15-19 literally; cheaper for sparse scans), "
-        "information matrix with its Cholesky factor (same posterior; cheaper for dense scans), or auto (by a "
-        "cost model at the sequence's samples per scan)")
+    # -- computation
     dtype: Literal["float64", "float32"] = Field("float64", description="precision of the particle maps")
-    workers: int = Field(2, ge=0, le=256,
-                         description="worker processes sharing the particle maps (information form), one "
-                         "BLAS thread each; 0 = in process (numpy backend)")
+    workers: int = Field(2, ge=0, le=256, description="worker processes sharing the particle maps, one BLAS "
+                         "thread each; 0 = in process (numpy backend)")
     backend: Literal["numpy", "torch"] = Field(
         "numpy", description="array backend of the RICH-SLAM particle maps and filter loop: numpy (CPU, worker "
         "processes) or torch (batched tensors on slam.device; needs the learn extra)")
     device: Literal["auto", "cpu", "cuda"] = Field(
-        "auto", description="device of the torch backend: cuda, cpu, or auto (cuda when torch sees one, else cpu; "
-        "the fallback is logged); numpy runs on the cpu")
+        "auto", description="device of the torch backend: cuda, cpu, or auto (cuda when torch sees one, else cpu)")
     torch_threads: int = Field(1, ge=0, le=256, description="CPU threads of the torch backend on the cpu (0 = torch's "
-                               "default, one per core; one thread is far faster on a shared machine, README)")
+                               "default, one per core; one thread is far faster on a shared machine)")
     # -- measurements (Sec. IV-B, Fig. 3a)
     max_range: float = Field(5.0, gt=0, description="beams longer than this are dropped (m, Table II)")
     min_range: float = Field(0.0, ge=0, description="beams shorter than this are dropped (m)")
@@ -125,61 +95,10 @@ class SlamParams(StageParams):
     z_min: float | None = Field(None, description="keep points with base-frame z >= z_min (m); None: no gate")
     z_max: float | None = Field(None, description="keep points with base-frame z <= z_max (m); None: no gate")
     # -- weights (Sec. IV-D2)
-    endpoint_tolerance: float = Field(
-        0.0, ge=0, description="endpoint tolerance radius r_e (m, eq. 29; the paper: 0.25); 0 = off, chosen on the "
-        "calibration runs (stop 39, stages/slam/README.md); rich_slam_paper always takes the paper's 0.25 and "
-        "rich_slam_no_et always 0")
-    et_ring_points: int = Field(8, ge=1, le=64, description="points on each ring of the discretised r_e disc")
-    et_rings: int = Field(1, ge=1, le=16, description="rings of the discretised r_e disc")
-    et_variance: Literal["exact", "taylor"] = Field(
-        "taylor", description="variance at the tolerance points: with Phi linearised about the endpoint (the mean "
-        "stays exact; log weights within 0.003 of the exact ones on the demo, README), or exact Phi^T cov Phi (slower)")
-    likelihood_exponent: float = Field(
-        0.5, gt=0, description="exponent on the scan likelihood of the Hilbert filters (1: the paper, eq. 22; 0.5 "
-        "tempers the weight for beams that are not independent, chosen on the calibration runs, stages/slam/README.md;"
-        " rich_slam_paper: always 1)")
-    informed_exponent_information: float | None = Field(
-        None, gt=0, description="the Hilbert filters (not rich_slam_paper nor rich_slam_refined): run with "
-        "informed_likelihood_exponent where the weight's median yaw "
-        "information along the odometry (rad^-2, at likelihood_exponent; computed before the filter) is at least "
-        "this; None: off (stages/slam/README.md, stop 49)")
-    informed_likelihood_exponent: float = Field(
-        1.0, gt=0, description="the exponent on the scan likelihood where informed_exponent_information switches")
-    grid_likelihood_exponent: float = Field(1.0, gt=0, description="fastslam_grid: exponent on its scan likelihood "
-                                            "(1 was better on the calibration runs)")
-    grid_share: float = Field(0.0, ge=0, lt=1, description="share of each scan's log-likelihood that rich_slam takes "
-                              "from a FastSLAM occupancy grid each particle carries beside its Hilbert map (the "
-                              "detail M basis functions cannot hold on a large domain); 0: the paper's Hilbert "
-                              "weight alone (rich_slam_paper always)")
-    map_delay: int = Field(0, ge=0, le=100_000,
-                           description="rich_slam: weigh each scan against the particle's map without its "
-                           "last map_delay scans, which agree with the particle's heading right or wrong "
-                           "(stages/slam/delayed_maps.py); 0: the paper's map of every earlier scan")
-    outlier: float = Field(0.0, ge=0, lt=1, description="probability that a radar sample is not explained by the "
-                           "map (clutter, multipath): it then scores 1/2 whatever the map says, so no sample can "
-                           "outweigh the scan (the grid's z_rand); 0: the paper's eq. 28 (rich_slam_paper always)")
-    common_support: float | None = Field(
-        None, gt=0, le=1, description="score each scan only on the samples every particle's map has seen: predictive "
-        "variance below this fraction of signal_variance for every particle (stages/slam/README.md; unset: every "
-        "sample, the paper; rich_slam_paper: always unset). Needs workers = 0 and backend = numpy")
-    free_weight: float = Field(1.0, ge=0, description="weight of the free samples' log terms against the endpoints' "
-                               "in every Hilbert method's weight (1: the paper, eq. 23)")
-    # -- pose refinement (rich_slam_refined, stages/slam/pose_refinement.py)
-    refine_iterations: int = Field(3, ge=1, le=100,
-                                   description="rich_slam_refined: Gauss-Newton steps per scan on each "
-                                   "particle's pose against its own map before weighting")
-    refine_max_step_xy: float = Field(0.25, gt=0, description="rich_slam_refined: largest x, y step per iteration (m)")
-    refine_max_step_yaw: float = Field(0.05, gt=0, description="rich_slam_refined: largest yaw step per iteration "
-                                       "(rad)")
-    refine_objective: Literal["gaussian", "logistic"] = Field(
-        "logistic", description="rich_slam_refined: scan term matched: the map's own Gaussian regression of the "
-        "+-1 labels (least squares on y - m / sigma_n) or eq. 28's mean-only logistic term")
-    refine_covariance_scale: float = Field(1.0, gt=0, description="rich_slam_refined: the proposal is N(refined "
-                                           "pose, this * inverse Gauss-Newton Hessian)")
-    refine_free_weight: float | None = Field(
-        None, ge=0, description="rich_slam_refined: weight of the free samples' terms against the endpoints' in the "
-        "refinement objective only (unset: free_weight, the weights' own)")
-    # -- particles (Sec. IV-D1, D3)
+    endpoint_tolerance: float = Field(PAPER_ENDPOINT_TOLERANCE, ge=0, description="endpoint tolerance radius r_e "
+                                      "(m, eq. 29; the paper: 0.25); rich_slam_no_et always 0")
+    et_ring_points: int = Field(8, ge=1, le=64, description="points on the ring of the discretised r_e disc")
+    # -- proposal (eq. 21, GMapping's motion model) and resampling (Sec. IV-D1, D3)
     motion_std_xy: float = Field(0.002, ge=0, description="process noise std on x and y per scan (m, eq. 21)")
     motion_std_yaw: float = Field(0.0005, ge=0, description="process noise std on yaw per scan (rad, eq. 21)")
     motion_rel_trans: float = Field(0.05, ge=0, description="extra xy std per metre of odometry translation")
@@ -188,87 +107,17 @@ class SlamParams(StageParams):
                                         "(rad/m; GMapping's str)")
     motion_trans_per_rot: float = Field(0.06, ge=0, description="extra xy std per radian of odometry rotation "
                                         "(m/rad; GMapping's srt)")
-    proposal: Literal["odometry_covariance", "gmapping"] = Field(
-        "odometry_covariance", description="the filters' proposal noise: the odometry's own per-scan increment "
-        "covariance (odometry.parquet cov_*; the default, chosen on the four calibration runs, stages/slam/README.md) "
-        "or GMapping's fitted form (motion_*); rich_slam_paper: always gmapping")
-    proposal_scale: float = Field(1.0, gt=0, description="factor on the odometry's increment covariance in the "
-                                  "odometry_covariance proposal (1: the covariance as the odometry writes it)")
-    yaw_bias: bool = Field(False, description="each particle carries a yaw-rate bias that corrects its odometry "
-                           "heading increment (not rich_slam_paper); off by default: worse on the calibration runs "
-                           "whose odometry is good (stages/slam/README.md)")
-    yaw_bias_sigma0: float = Field(0.005, gt=0, description="yaw-rate bias prior std, rad/s (the odometry's gyro "
-                                   "bias prior, odometry.sigma_gyro_bias0)")
-    yaw_bias_walk: float = Field(3.9e-6, ge=0, description="yaw-rate bias random walk, rad/s/sqrt(s) (3DM-GX5 "
-                                 "in-run bias instability 8 deg/h over a 100 s correlation time)")
-    yaw_bias_share: float = Field(1.0, gt=0, le=1, description="share of the particles that carry the yaw-rate bias; "
-                                  "the others keep none, so the weights choose between a drifting and a good "
-                                  "odometry (1: all)")
-    proposal_wide_share: float = Field(0.0, ge=0, lt=1, description="with the odometry_covariance proposal: the "
-                                       "stationary share of the particles drawn with GMapping's wide fitted noise "
-                                       "(motion_*) instead, resampled with their mode, for an odometry that drifts "
-                                       "more than its covariance says (0: off; worse on the calibration runs, "
-                                       "stages/slam/README.md stop 54)")
-    proposal_wide_switch: float = Field(0.01, ge=0, le=1, description="per-scan probability that a particle's "
-                                        "mode (wide or the odometry's) is drawn afresh from proposal_wide_share")
     resampling: Literal["systematic", "stratified", "multinomial"] = Field(
         "systematic", description="resampler (systematic = low variance)")
     resample_threshold: float = Field(0.5, gt=0, le=1, description="resample when N_eff < this * N_p (eq. 31)")
-    resample_keep_mean: bool = Field(False, description="resampling keeps the particles' weighted mean pose "
-                                     "(removes resampling's Monte Carlo drift of the mean; not rich_slam_paper; "
-                                     "stages/slam/README.md)")
-    estimate: Estimate = Field(
-        "fused", description="trajectory: the largest-weight particle at each scan (Algorithm 1), the "
-        "final best particle's history, the weighted mean pose at each scan (x, y arithmetic, yaw circular), or "
-        "the smoothed mean (the final particles' ancestors with the final weights: uses the later scans too; "
-        "stages/slam/README.md), or that smoothed heading fused with the odometry's by the fusion_* error models "
-        "(the odometry's increments composed along it); rich_slam_paper: always the first")
-    fusion_bias_sigma0: float = Field(0.003, ge=0, description="estimate = fused: initial std of the odometry's "
-                                      "unmodelled yaw-rate bias, rad/s")
-    fusion_bias_walk: float = Field(1e-5, ge=0, description="estimate = fused: random-walk density of that bias, "
-                                    "rad/s/sqrt(s) (re-fitted on twelve calibration runs at stop 49; 3e-4 before)")
-    fusion_filter_sigma: float = Field(4.0, gt=0, description="estimate = fused: stationary std of the filter's "
-                                       "heading error, deg (stop 49; 8 before)")
-    fusion_filter_tau: float = Field(100.0, gt=0, description="estimate = fused: correlation time of the filter's "
-                                     "heading error, s")
-    fusion_increment_scale: float = Field(0.1, gt=0, description="estimate = fused: factor on the odometry's "
-                                          "per-increment yaw variances in the fusion's model of its error (below 1: "
-                                          "they over-cover yaw; stages/slam/README.md stop 46)")
-    fusion_information_ref: float = Field(400.0, ge=0, description="estimate = fused: the yaw information of the "
-                                          "filter's scan weight (rad^-2 per scan, the run's median along the "
-                                          "odometry) below which fusion_filter_sigma grows as 1/sqrt(information): "
-                                          "the fusion keeps more of the odometry's heading where the weight holds "
-                                          "little (stages/slam/README.md, stop 47; 0: off)")
-    fusion_jump_gate: float = Field(5.0, ge=0, description="estimate = fused: a heading step of the filter past "
-                                    "this many predicted sigmas, within one scan or summed over "
-                                    "fusion_jump_window, is a jump of its own error, which stays (0: off)")
-    fusion_jump_window: float = Field(10.0, ge=0, description="estimate = fused: seconds over which a jump of the "
-                                      "filter's heading spread over a turn is summed (stop 50; 0: one-scan gate "
-                                      "only)")
-    fusion_alpha_max: float = Field(1.5, ge=0, description="estimate = fused: the fusion's heading correction is "
-                                    "applied times the scale in 0 (the odometry), 0.125, ..., this that makes the "
-                                    "radar scans' endpoints most consistent with each other along the trajectory "
-                                    "(stages/slam/map_consistency.py; chosen on the calibration runs at stop 51; "
-                                    "0: off, the correction as the fusion gives it)")
-    fusion_alpha_criterion: Literal["capped", "matched", "common"] = Field(
-        "capped", description="estimate = fused: what the scale minimises: 'capped', the whole capped score (stop "
-        "51), which also falls when more endpoints merely overlap, 'matched', the mean square distance of the "
-        "endpoints that have a counterpart (stop 52: better on the calibration runs, worse on the evaluated ones), "
-        "or 'common', that of the endpoints matched at every scale searched (stop 53)")
-    fusion_alpha_guard: float = Field(0.0, ge=0, description="estimate = fused: the chosen scale stands only if "
-                                      "its criterion beats the odometry's by more than this many standard errors "
-                                      "over 10 s blocks of the run, else the odometry stays (stop 55; 0: off)")
     # -- radar_graph: keyframe pose graph (stages/slam/pose_graph.py; settings chosen on the calibration runs)
     graph_max_range: float = Field(10.0, gt=0, description="radar_graph: endpoints up to this range (m) enter the "
                                    "keyframe clouds (longer than max_range, the Hilbert map's: more structure)")
     graph_keyframe_distance: float = Field(1.0, gt=0, description="radar_graph: a keyframe every this many metres "
                                            "of odometry travel")
     graph_keyframe_angle: float = Field(15.0, gt=0, description="radar_graph: or every this many degrees turned")
-    graph_local_keyframes: int = Field(10, ge=1, le=1000, description="radar_graph: keyframes in a local map "
-                                       "(registration and loop verification)")
-    graph_registration: bool = Field(False, description="radar_graph: a factor from each keyframe registered "
-                                     "against the keyframes before it (off: measured biased on the calibration "
-                                     "runs, stages/slam/README.md)")
+    graph_local_keyframes: int = Field(10, ge=1, le=1000, description="radar_graph: keyframes in the local cloud "
+                                       "of each end of a loop closure")
     graph_yaw_rate_sigma: float = Field(0.03, ge=0, description="radar_graph: rad/s of gyro bias the odometry's "
                                         "covariance does not hold, added to each odometry factor's yaw variance")
     graph_loop_radius: float = Field(3.0, gt=0, description="radar_graph: keyframes this close on the odometry "
@@ -308,111 +157,41 @@ class SlamParams(StageParams):
 
     @model_validator(mode="after")
     def _check(self) -> SlamParams:
-        sizes = {"n_basis": self.n_basis, **({"submap_n_basis": self.submap_n_basis} if self.map != "global" else {})}
-        for name, M in sizes.items():
-            if self.basis_kind == "tensor" and round(M**0.5) ** 2 != M:
-                raise ValueError(f"{name} = {M} is not a perfect square (the tensor basis of eq. 7 needs one; or set "
-                                 "basis_kind = 'circular')")
-        if self.map != "global":
-            try:
-                self.submap_model()
-            except ValueError as exc:
-                raise ValueError(f"slam.submap_half_width = {self.submap_half_width}: {exc}") from None
-            hil = [m for m in dict.fromkeys([self.method, *self.methods]) if m in HILBERT_METHODS
-                   and m not in (*PAPER_METHODS, *REFINED_METHODS)]
-            if self.backend == "torch" and hil:
-                raise ValueError(f"map = {self.map} runs on the numpy backend only ({', '.join(hil)}): set "
-                                 "slam.backend = numpy or slam.map = global")
+        if round(self.n_basis**0.5) ** 2 != self.n_basis:
+            raise ValueError(f"n_basis = {self.n_basis} is not a perfect square (the tensor basis of eq. 7 needs one)")
         if self.z_min is not None and self.z_max is not None and self.z_min > self.z_max:
             raise ValueError(f"z_min {self.z_min} > z_max {self.z_max}")
         if self.backend == "torch" and self.map_update != "kalman":
             raise ValueError("backend = torch implements the Kalman map update only; use backend = numpy for "
                              "map_update = laplace")
-        refined = [m for m in dict.fromkeys([self.method, *self.methods]) if m in REFINED_METHODS]
-        if self.backend == "torch" and refined:
-            raise ValueError(f"{', '.join(refined)} (pose refinement) runs on the numpy backend only: set "
-                             "slam.backend = numpy or leave it out of slam.methods")
-        if self.backend == "torch" and self.endpoint_noise_variance is not None:
-            raise ValueError("endpoint_noise_variance (per-label map noise) runs on the numpy backend only: set "
-                             "slam.backend = numpy or leave endpoint_noise_variance unset")
         if self.backend == "numpy" and self.device == "cuda":
             raise ValueError("device = cuda needs backend = torch (the numpy backend runs on the cpu)")
-        for name in ("map_delay", "grid_share"):  # options built on the in-process global map
-            value = getattr(self, name)
-            if value > 0 and (self.backend != "numpy" or self.map != "global"):
-                raise ValueError(f"slam.{name} = {value} runs on the numpy backend with the global map: set "
-                                 f"slam.backend = numpy and slam.map = global, or {name} = 0")
-        if self.common_support is not None and (self.workers > 0 or self.backend != "numpy"):
-            raise ValueError("common_support compares every particle's samples in one process: set slam.workers = 0 "
-                             "and slam.backend = numpy, or leave common_support unset")
-        try:
-            self.consistency_model()
-        except ValidationError as exc:
-            raise ValueError(f"slam.fusion_alpha_guard = {self.fusion_alpha_guard:g} with slam.fusion_alpha_criterion "
-                             f"= {self.fusion_alpha_criterion}: {exc.errors()[0]['ctx']['error']}") from None
         return self
-
-    def consistency_model(self) -> MapConsistency:
-        """The fused estimate's search of the correction's scale (``fusion_alpha_*``)."""
-        return MapConsistency(alpha_max=self.fusion_alpha_max, criterion=self.fusion_alpha_criterion,
-                              guard=self.fusion_alpha_guard)
-
-    def submap_model(self) -> SubmapModel:
-        """The submaps' geometry (their samples reach max_range plus the endpoint tolerance)."""
-        return SubmapModel(self.submap_half_width, self.submap_n_basis, self.max_range + self.endpoint_tolerance,
-                           keep_closed=self.submap_keep_closed)
 
     def graph_model(self) -> GraphModel:
         """radar_graph's parameter object (:class:`pose_graph.GraphModel`)."""
         return GraphModel(
             keyframe_distance=self.graph_keyframe_distance, keyframe_angle_deg=self.graph_keyframe_angle,
-            local_keyframes=self.graph_local_keyframes, registration=self.graph_registration,
+            local_keyframes=self.graph_local_keyframes,
             yaw_rate_sigma=self.graph_yaw_rate_sigma, loop_radius=self.graph_loop_radius,
             loop_min_travel=self.graph_loop_min_travel, loop_search_yaw_deg=self.graph_loop_search_yaw,
             loop_min_inliers=self.graph_loop_min_inliers, robust=self.graph_robust,
             matcher=MatcherModel(sigma=self.graph_match_sigma, temperature=self.graph_match_temperature))
 
     def config(self) -> SlamConfig:
+        """The filter methods' parameter object (:class:`methods.SlamConfig`)."""
         return SlamConfig(
-            submaps=self.submap_model() if self.map != "global" else None,
-            submap_share=0.5 if self.map == "hybrid" else 1.0,
-            submap_lengthscale_m=self.submap_lengthscale * self.length_unit_m,
             n_particles=self.n_particles, lengthscale_m=self.lengthscale * self.length_unit_m,
             signal_variance=self.signal_variance, noise_variance=self.noise_variance, n_basis=self.n_basis,
-            basis_kind=self.basis_kind, endpoint_tolerance=self.endpoint_tolerance,
-            et_ring_points=self.et_ring_points, et_rings=self.et_rings, et_variance=self.et_variance,
-            likelihood_exponent=self.likelihood_exponent, grid_likelihood_exponent=self.grid_likelihood_exponent,
-            informed_exponent_information=self.informed_exponent_information,
-            informed_likelihood_exponent=self.informed_likelihood_exponent,
+            endpoint_tolerance=self.endpoint_tolerance, et_ring_points=self.et_ring_points,
             noise=MotionNoise(self.motion_std_xy, self.motion_std_yaw, self.motion_rel_trans, self.motion_rel_rot,
                               self.motion_rot_per_trans, self.motion_trans_per_rot),
-            proposal=self.proposal, proposal_scale=self.proposal_scale,
-            yaw_bias=YawBias(self.yaw_bias_sigma0, self.yaw_bias_walk, self.yaw_bias_share) if self.yaw_bias else None,
-            wide=WideMode(self.proposal_wide_share, self.proposal_wide_switch) if self.proposal_wide_share else None,
-            resampling=self.resampling, resample_threshold=self.resample_threshold,
-            resample_keep_mean=self.resample_keep_mean, map_update=self.map_update,
-            laplace_iterations=self.laplace_iterations, map_form=self.map_form, dtype=self.dtype,
-            workers=self.workers, backend=self.backend, device=self.device, torch_threads=self.torch_threads,
+            resampling=self.resampling, resample_threshold=self.resample_threshold, map_update=self.map_update,
+            dtype=self.dtype, workers=self.workers, backend=self.backend, device=self.device,
+            torch_threads=self.torch_threads,
             grid=GridModel(self.grid_l_occ, self.grid_l_free, -self.grid_l_clamp, self.grid_l_clamp, 0.0,
                            self.grid_sigma_hit, self.grid_max_dist, self.grid_z_hit, self.grid_z_rand),
-            grid_resolution=self.grid_resolution, estimate=self.estimate,
-            refinement=PoseRefinement(
-                iterations=self.refine_iterations, max_step_xy=self.refine_max_step_xy,
-                max_step_yaw=self.refine_max_step_yaw, covariance_scale=self.refine_covariance_scale,
-                objective=self.refine_objective,
-                free_weight=self.free_weight if self.refine_free_weight is None else self.refine_free_weight,
-                noise_variance=self.noise_variance,
-                endpoint_noise_variance=self.endpoint_noise_variance),
-            free_weight=self.free_weight, endpoint_noise_variance=self.endpoint_noise_variance,
-            outlier=self.outlier, grid_share=self.grid_share, map_delay=self.map_delay,
-            support_variance=None if self.common_support is None else self.common_support * self.signal_variance,
-            fusion=HeadingFusion(bias_sigma0=self.fusion_bias_sigma0, bias_walk=self.fusion_bias_walk,
-                                 filter_sigma=math.radians(self.fusion_filter_sigma),
-                                 filter_tau=self.fusion_filter_tau, jump_gate=self.fusion_jump_gate,
-                                 jump_window=self.fusion_jump_window,
-                                 increment_scale=self.fusion_increment_scale,
-                                 information_ref=self.fusion_information_ref),
-            consistency=self.consistency_model(),
+            grid_resolution=self.grid_resolution,
         )
 
 
@@ -455,12 +234,11 @@ class SlamStage(Stage):
         cfg = p.config()
         base_from_radar = read_calibration(ctx)
         scans, t_ns, odo, inc_cov = read_odometry(ctx)
-        motion = OdometryMotion(inc_cov, np.r_[0.0, np.diff(t_ns) * 1e-9])
         point_scan, xyz = read_radar(ctx)
         samples = beam_samples_by_scan(point_scan, xyz, scans, base_from_radar, p)
         ctx.stats["radar_points_used"] = int(sum(len(o.endpoints) for o in samples))
         half, centre = domain_from_trajectory(odo[:, :2], p.domain_padding)
-        basis = hm.make_basis(half, centre, p.n_basis, p.basis_kind)
+        basis = hm.make_basis(half, centre, p.n_basis, "tensor")
         device, note = resolve_device(p.backend, p.device)
         if note:
             ctx.console.print(f"[yellow]slam: {note}[/]")
@@ -480,77 +258,40 @@ class SlamStage(Stage):
         graphs: dict[str, GraphResult] = {}
         with ctx.progress(len(methods) * len(scans), "methods") as advance:
             for m in methods:
-                local = cfg.for_method(m).submaps is not None  # no global map to track: replayed below
-                obs = tracker.observe if (m == p.method and m in HILBERT_METHODS and not local) else None
+                obs = tracker.observe if (m == p.method and m in HILBERT_METHODS) else None
                 if m in GRAPH_METHODS:
                     endpoints = graph_endpoints_by_scan(point_scan, xyz, scans, base_from_radar, p)
                     res, graph = run_graph(ctx, p, odo, inc_cov, t_ns, endpoints)
                     graphs[m] = graph
                     advance(len(scans))
                 else:
-                    res = run_method(m, odo, samples, basis, cfg, p.seed, observer=obs, on_step=advance,
-                                     motion=motion)
+                    res = run_method(m, odo, samples, basis, cfg, p.seed, observer=obs, on_step=advance)
                 results[m] = res
                 write_trajectory(ctx.output(f"trajectory_{m}.parquet"), scans, t_ns, res)
-                # the fused estimate's scale of the fusion's correction (map_consistency): recorded and said
-                scaled = (p.estimate == "fused" and p.fusion_alpha_max > 0 and m != "odometry"
-                          and res.fusion_alpha is not None)
                 ctx.stats.setdefault("methods", {})[m] = {
                     "seconds": round(res.seconds, 3),
                     "seconds_per_scan": round(res.seconds / max(len(scans), 1), 5),
                     "resamplings": res.resampled,
                     "n_eff_median": float(np.median(res.n_eff)) if len(res.n_eff) else None,
                     "map_form": res.form,
-                    **({"yaw_bias_final_deg_s": round(float(np.degrees(res.yaw_bias[-1])), 5)}
-                       if res.yaw_bias is not None and len(res.yaw_bias) else {}),
-                    **({"wide_share_mean": round(float(np.mean(res.wide_share)), 4)}
-                       if res.wide_share is not None and len(res.wide_share) else {}),
                     **({"device": res.device} if m in HILBERT_METHODS else {}),
-                    **({"submaps_opened": res.submaps_opened} if res.submaps_opened else {}),
-                    **({"submap_revisits": res.submap_revisits} if res.submap_revisits else {}),
-                    **({"fusion_jumps": res.fusion_jumps} if p.estimate == "fused" and m != "odometry" else {}),
-                    **({"fusion_alpha": res.fusion_alpha} if scaled else {}),
-                    **({"fusion_alpha_evidence": res.fusion_alpha_evidence}
-                       if scaled and res.fusion_alpha_evidence is not None else {}),
-                    **({"fusion_filter_sigma_deg": round(res.fusion_filter_sigma_deg, 3)}
-                       if p.estimate == "fused" and res.fusion_filter_sigma_deg is not None and m != "odometry"
-                       else {}),
-                    **({"heading_information": round(res.heading_information, 2)}
-                       if res.heading_information is not None and m != "odometry" else {}),
-                    **({"likelihood_exponent": res.likelihood_exponent} if res.likelihood_exponent is not None else {}),
                 }
                 ctx.console.print(f"[dim]slam: {m}: {res.seconds:.1f} s ({res.seconds / max(len(scans), 1):.3f} "
                                   f"s/scan), {res.resampled} resamplings[/]")
-                if scaled:
-                    ctx.console.print(f"slam: {m}: the fused estimate applies {res.fusion_alpha:g} x the fusion's "
-                                      "heading correction (the scale that makes the scans most consistent; 0: the "
-                                      "odometry itself, the filter's heading made them less consistent)"
-                                      + (f"; the best scale's gain: {res.fusion_alpha_evidence:.2f} standard errors "
-                                         f"(guard {p.fusion_alpha_guard:g})"
-                                         if res.fusion_alpha_evidence is not None else ""))
                 if m in GRAPH_METHODS:
                     g = graphs[m]
                     ctx.stats["methods"][m].update({
-                        "keyframes": len(g.keyframes), "registration_factors": g.count("registration"),
-                        "registrations_failed": g.registrations_failed, "loops_proposed": g.count("loop"),
+                        "keyframes": len(g.keyframes), "loops_proposed": g.count("loop"),
                         "loops_accepted": g.count("loop", True), "loops_rejected": g.count("loop", False)})
-                    ctx.console.print(f"slam: {m}: {len(g.keyframes)} keyframes, {g.count('registration')} "
-                                      f"registration factors, loop closures {g.count('loop')} proposed / "
+                    ctx.console.print(f"slam: {m}: {len(g.keyframes)} keyframes, loop closures "
+                                      f"{g.count('loop')} proposed / "
                                       f"{g.count('loop', True)} accepted / {g.count('loop', False)} rejected")
                     for w in g.warnings:
                         ctx.warn(f"{m}: {w}")
                     write_graph(ctx, g, scans, t_ns)
                 elif m != "odometry":
-                    # the filter's own heading: the fused estimate leans on the odometry and would hide a divergence
-                    own = res.estimates.get("smoothed", res.poses) if p.estimate == "fused" else res.poses
-                    dev = heading_deviation(odo, own, inc_cov)
+                    dev = heading_deviation(odo, res.poses, inc_cov)
                     ctx.stats["methods"][m]["heading_deviation_sigmas"] = round(dev.sigmas, 2)
-                    if p.estimate == "fused" and res.fusion_jumps:
-                        ctx.warn(f"{m}'s heading jumped {res.fusion_jumps} time(s) (past slam.fusion_jump_gate = "
-                                 f"{p.fusion_jump_gate} sigma, within a scan or over slam.fusion_jump_window = "
-                                 f"{p.fusion_jump_window} s): the fused estimate gave each jump to the filter's own "
-                                 f"error and kept the odometry's heading there; compare trajectory_{m}.parquet with "
-                                 "trajectory_odometry.parquet")
                     if dev.sigmas > p.deviation_warn_sigmas:
                         ctx.warn(f"{m}'s heading left the odometry's by {dev.degrees:.1f} deg at scan "
                                  f"{int(scans[dev.index])}, {dev.sigmas:.1f} sigma of the odometry's own accumulated "
@@ -786,8 +527,7 @@ class MapTracker:
         for i, (pose, s) in enumerate(zip(poses, self.samples, strict=True)):
             if s.n:
                 phi = hm.features(self.basis, to_world(pose, s.points))
-                theta, cov = hm.kalman_update(theta, cov, phi, s.labels, hm.label_noise_variance(
-                    s.labels, self.cfg.noise_variance, self.cfg.endpoint_noise_variance), inplace=True)
+                theta, cov = hm.kalman_update(theta, cov, phi, s.labels, self.cfg.noise_variance, inplace=True)
             self._observe_map(i, pose, theta, cov)
         return theta, cov
 

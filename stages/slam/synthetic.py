@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from stages.slam.rbpf import compose, odometry_increments, wrap_angle
+from stages.slam.rbpf import compose, odometry_increments
+from stages.slam.se2 import wrap_angle
 
 F64 = npt.NDArray[np.floating[Any]]
 

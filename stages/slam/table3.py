@@ -11,7 +11,7 @@ finishes and skips the ones already there: stop it at any point and run the same
     python -m stages.slam.table3 --table a.jsonl b.jsonl      # rows of several sessions in one table
     python -m stages.slam.table3 --table table3.jsonl --figure table3.png   # and the figure (one panel a sequence)
     python -m stages.slam.table3 --table table3.jsonl --paper               # the twins beside the paper's Table III
-    python -m stages.slam.table3 --table table3.jsonl --targets             # issue 27's targets per sequence
+    python -m stages.slam.table3 --table table3.jsonl --targets             # radar_graph's targets per sequence
 
 Errors are position RMSE [m] / yaw RMSE [deg] after an SE(2) alignment (the evaluate stage's
 ``evaluate_trajectory``), two ways, both in every row: on the whole trajectory (``pos_rmse_whole_m``,
@@ -29,7 +29,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -46,21 +46,7 @@ from stages.evaluate.rich_slam_paper import (
 from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, evaluate_trajectory_whole, quat_to_yaw
 from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.heading_fusion import HeadingFusion
-from stages.slam.map_consistency import MapConsistency
-from stages.slam.methods import (
-    ESTIMATES,
-    GRAPH_METHODS,
-    METHODS,
-    MethodResult,
-    OdometryMotion,
-    domain_from_trajectory,
-    fused_estimate,
-    fusion_record,
-    informed_exponent,
-    informed_fusion,
-    run_method,
-)
+from stages.slam.methods import GRAPH_METHODS, METHODS, MethodResult, domain_from_trajectory, run_method
 from stages.slam.pose_graph import optimise_graph
 from stages.slam.stage import SlamParams, beam_samples_by_scan, graph_endpoints_by_scan, read_odometry_file
 from stages.slam.unit_study import read_run_folder
@@ -98,23 +84,16 @@ def slam_overrides(items: Sequence[str]) -> dict[str, Any]:
 
 
 def load_inputs(run_dir: Path, p: SlamParams
-                ) -> tuple[npt.NDArray[np.int64], F64, list[BeamSamples], Truth, OdometryMotion]:
+                ) -> tuple[npt.NDArray[np.int64], F64, list[BeamSamples], Truth, F64]:
     """Scan times, odometry poses (valid rows, scan order), beam samples, ground truth and the odometry's
-    increment covariance and intervals of a run folder."""
+    increment covariance ``(T, 3, 3)`` of a run folder."""
     gt, calib, radar = read_run_folder(run_dir)
-    scans, t_ns, poses, motion = read_odometry_motion(run_dir)
+    scans, t_ns, poses, inc_cov = read_odometry_file(run_dir / "odometry" / "odometry.parquet", run_dir.name)
     xyz = np.stack([radar[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], 1)
     samples = beam_samples_by_scan(radar["scan"].to_numpy().astype(np.int64), xyz, scans, calib, p)
     truth: Truth = (gt["t_ns"].astype(np.int64), np.stack([gt["x"], gt["y"]], 1).astype(np.float64),
                     quat_to_yaw(gt["qx"], gt["qy"], gt["qz"], gt["qw"]))
-    return t_ns, poses, samples, truth, motion
-
-
-def read_odometry_motion(run_dir: Path) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F64, OdometryMotion]:
-    """Scan numbers, stamps, poses (valid rows, scan order) and the increment covariance and intervals of a run
-    folder's odometry."""
-    scans, t_ns, poses, cov = read_odometry_file(run_dir / "odometry" / "odometry.parquet", run_dir.name)
-    return scans, t_ns, poses, OdometryMotion(cov, np.r_[0.0, np.diff(t_ns) * 1e-9])
+    return t_ns, poses, samples, truth, inc_cov
 
 
 def error_fields(t_ns: npt.NDArray[np.int64], est: npt.NDArray[np.float64], truth: Truth) -> dict[str, float]:
@@ -254,17 +233,10 @@ def append_row(out: Path, row: dict[str, Any]) -> None:
         os.fsync(f.fileno())
 
 
-def estimate_label(method: str, estimate: str, configured: str) -> str:
-    """A row's method name: the method itself for the configured estimate, ``"<method>, <estimate>"`` for the
-    others that :func:`run` writes from the same filter run (``--estimates``)."""
-    return method if estimate == configured or method == "odometry" else f"{method}, {estimate}"
-
-
 def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], overrides: dict[str, Any],
-        out: Path, estimates: Sequence[str] = (), keep: Path | None = None) -> None:
-    """Append a row per (run, method, seed) not yet in ``out``; ``estimates``: also a row for each of these
-    trajectory estimates of the same filter run (``methods.ESTIMATES``; labelled by :func:`estimate_label`);
-    ``keep``: also save each row's trajectory there (:func:`save_trajectory`)."""
+        out: Path, keep: Path | None = None) -> None:
+    """Append a row per (run, method, seed) not yet in ``out``; ``keep``: also save each row's trajectory there
+    (:func:`save_trajectory`)."""
     p = SlamParams(**overrides)
     config = json.dumps(overrides, sort_keys=True)
     done = done_keys(out)
@@ -272,65 +244,44 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
         todo = [(m, s) for s in seeds for m in methods if (run_dir.name, m, s, config) not in done]
         if not todo:
             continue
-        t_ns, odo, samples, truth, motion = load_inputs(run_dir, p)
+        t_ns, odo, samples, truth, inc_cov = load_inputs(run_dir, p)
         half, centre = domain_from_trajectory(odo[:, :2], p.domain_padding)
-        basis = hm.make_basis(half, centre, p.n_basis, p.basis_kind)
+        basis = hm.make_basis(half, centre, p.n_basis, "tensor")
         cfg = p.config()
         anchored = groundtruth_anchored(run_dir)
         for m, s in todo:
             t0 = time.perf_counter()
             graph_counts: dict[str, int] = {}
             if m in GRAPH_METHODS:
-                res, graph_counts = run_graph_method(run_dir, p, t_ns, odo, motion)
+                res, graph_counts = run_graph_method(run_dir, p, t_ns, odo, inc_cov)
             else:
-                res = run_method(m, odo, samples, basis, cfg, s, motion=motion)
+                res = run_method(m, odo, samples, basis, cfg, s)
             seconds = time.perf_counter() - t0
-            own = cfg.for_method(m).estimate  # the estimate the method ran with (rich_slam_paper: its own)
-            extra = [e for e in estimates if e != own and m != "odometry"]
-            for est_name in [*extra, own]:  # the configured row last: it marks the run as done
-                label = estimate_label(m, est_name, own)
-                row_config = config if est_name == own else json.dumps({**overrides, "estimate": est_name},
-                                                                         sort_keys=True)
-                if (run_dir.name, label, s, row_config) in done:
-                    continue
-                est = np.asarray(res.estimates[est_name], np.float64)
-                row = {"seq": run_dir.name, "method": label, "seed": s, "config": row_config,
-                       **error_fields(t_ns, est, truth), "s_per_scan": seconds / len(odo),
-                       "resamplings": res.resampled, "scans": len(odo), **graph_counts}
-                if est_name == "fused" and res.fusion_alpha is not None and cfg.consistency.alpha_max > 0:
-                    row["fusion_alpha"] = res.fusion_alpha
-                    if res.fusion_alpha_evidence is not None:
-                        row["fusion_alpha_evidence"] = res.fusion_alpha_evidence
-                if est_name == "fused" and res.heading_information is not None:  # as the --from-kept rows give them
-                    row["heading_information"] = res.heading_information
-                    if res.fusion_filter_sigma_deg is not None:
-                        row["fusion_filter_sigma_deg"] = res.fusion_filter_sigma_deg
-                if res.likelihood_exponent is not None:  # the exponent the Hilbert filter ran with
-                    row["likelihood_exponent"] = res.likelihood_exponent
-                if res.wide_share is not None and len(res.wide_share):  # the weight on the wide mode
-                    row["wide_share_mean"] = float(np.mean(res.wide_share))
-                if anchored:  # beside the Table III protocol: no alignment (every filter starts at the anchor)
-                    row["pos_rmse_anchored_m"], row["yaw_rmse_anchored_deg"] = anchored_errors(
-                        t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
-                if keep is not None:
-                    save_trajectory(keep, run_dir.name, label, s, row_config, t_ns, est, truth, est_name)
-                append_row(out, row)
-                say_row(row, f"{row['s_per_scan']:.3f} s/scan")
+            est = np.asarray(res.poses, np.float64)
+            row = {"seq": run_dir.name, "method": m, "seed": s, "config": config,
+                   **error_fields(t_ns, est, truth), "s_per_scan": seconds / len(odo),
+                   "resamplings": res.resampled, "scans": len(odo), **graph_counts}
+            if anchored:  # beside the Table III protocol: no alignment (every filter starts at the anchor)
+                row["pos_rmse_anchored_m"], row["yaw_rmse_anchored_deg"] = anchored_errors(
+                    t_ns, est[:, :2], est[:, 2], truth[0], truth[1], truth[2])
+            if keep is not None:
+                save_trajectory(keep, run_dir.name, m, s, config, t_ns, est, truth)
+            append_row(out, row)
+            say_row(row, f"{row['s_per_scan']:.3f} s/scan")
 
 
 def run_graph_method(run_dir: Path, p: SlamParams, t_ns: npt.NDArray[np.int64], odo: F64,
-                     motion: OdometryMotion) -> tuple[MethodResult, dict[str, int]]:
+                     inc_cov: F64) -> tuple[MethodResult, dict[str, int]]:
     """radar_graph on a run folder, as the slam stage runs it (endpoints to ``graph_max_range``): its result and
     the loop-closure counts of the row."""
     _, calib, radar = read_run_folder(run_dir)
-    scans = read_odometry_motion(run_dir)[0]
+    scans = read_odometry_file(run_dir / "odometry" / "odometry.parquet", run_dir.name)[0]
     xyz = np.stack([radar[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], 1)
     endpoints = graph_endpoints_by_scan(radar["scan"].to_numpy().astype(np.int64), xyz, scans, calib, p)
-    g = optimise_graph(odo, motion.cov, (t_ns - t_ns[0]) * 1e-9, endpoints, p.graph_model())
+    g = optimise_graph(odo, inc_cov, (t_ns - t_ns[0]) * 1e-9, endpoints, p.graph_model())
     counts = {"keyframes": len(g.keyframes), "loops_proposed": g.count("loop"),
               "loops_accepted": g.count("loop", True), "loops_rejected": g.count("loop", False)}
-    return MethodResult("radar_graph", g.poses, np.ones(len(g.poses)), 0.0,
-                        estimates=dict.fromkeys(ESTIMATES, g.poses)), counts
+    return MethodResult("radar_graph", g.poses, np.ones(len(g.poses)), 0.0), counts
 
 
 def trajectory_file(keep: Path, seq: str, label: str, seed: int, config: str) -> Path:
@@ -342,142 +293,16 @@ def trajectory_file(keep: Path, seq: str, label: str, seed: int, config: str) ->
 
 
 def save_trajectory(keep: Path, seq: str, label: str, seed: int, config: str, t_ns: npt.NDArray[np.int64],
-                    est: F64, truth: Truth, estimate: str = "") -> Path:
+                    est: F64, truth: Truth) -> Path:
     """Save a row's trajectory (scan stamps, x, y, yaw) with the ground truth and the row's config, written to
     a temporary name and renamed, so that estimators can be studied after the filter run."""
     path = trajectory_file(keep, seq, label, seed, config)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp.npz")
     np.savez(tmp, t_ns=t_ns, pose=est, truth_t_ns=truth[0], truth_xy=truth[1], truth_yaw=truth[2],
-             config=np.array(config), label=np.array(label), seed=np.array(seed), estimate=np.array(estimate))
+             config=np.array(config), label=np.array(label), seed=np.array(seed))
     os.replace(tmp, path)
     return path
-
-
-def kept_smoothed(keep: Path, seq: str, method: str, overrides: dict[str, Any] | None = None
-                  ) -> list[tuple[Path, Any, dict[str, Any]]]:
-    """The ``smoothed`` trajectories of ``method`` kept for ``seq`` (:func:`save_trajectory`) whose configuration
-    agrees with ``overrides``: (path, the loaded file, its configuration), in file-name order."""
-    default_estimate = SlamParams().estimate
-    out = []
-    for path in sorted((keep / seq).glob(f"{method}*_seed*.npz")):
-        kept = np.load(path)
-        base = json.loads(str(kept["config"]))
-        # the kept trajectory's estimate: recorded since it was added, else the row's config or default
-        est_kept = str(kept["estimate"]) if "estimate" in kept.files and str(kept["estimate"]) else \
-            base.get("estimate", default_estimate)
-        if str(kept["label"]) not in (method, f"{method}, smoothed") or est_kept != "smoothed":
-            continue
-        if any(k in base and base[k] != v for k, v in (overrides or {}).items()):
-            continue
-        out.append((path, kept, base))
-    return out
-
-
-def kept_fusion(method: str, params: SlamParams, odometry: F64, scans: Callable[[], list[BeamSamples]]
-                ) -> tuple[HeadingFusion, F64 | None, MapConsistency]:
-    """The fusion model, the weight's heading information along the odometry (None unless the model is informed)
-    and the scale's search, as the filter run of ``method`` with ``params`` takes them; ``scans`` is called only
-    when the information is needed."""
-    cfg = params.config()
-    if cfg.fusion.information_ref <= 0:
-        return cfg.fusion, None, cfg.consistency
-    beams = scans()
-    basis = hm.make_basis(*domain_from_trajectory(odometry[:, :2], params.domain_padding), params.n_basis,
-                          params.basis_kind)
-    cfg = informed_exponent(method, cfg, basis, odometry, beams)  # the exponent the filter ran with
-    return (*informed_fusion(method, cfg, basis, odometry, beams), cfg.consistency)
-
-
-def fused_from_kept(runs: Sequence[Path], keep: Path, overrides: dict[str, Any], out: Path,
-                    methods: Sequence[str] = ("rich_slam", "fastslam_grid")) -> int:
-    """Rows of the ``fused`` estimate computed from kept ``smoothed`` trajectories (:func:`save_trajectory`)
-    without running the filters again: the fusion reads only the smoother's trajectory, the odometry and its
-    covariance (:func:`methods.fused_estimate`), so the row equals the one ``--estimates fused`` writes in the
-    filter run. ``overrides`` are the fusion's (and the kept run's) slam parameters. Returns the rows written."""
-    p = SlamParams(**overrides)
-    fusion_keys = {k: v for k, v in overrides.items() if k.startswith("fusion_")}
-    done = done_keys(out)
-    written = 0
-    for run_dir in runs:
-        odometry: tuple[npt.NDArray[np.int64], F64, OdometryMotion] | None = None  # read once per run folder
-        scans: list[BeamSamples] | None = None
-
-        def load_scans() -> list[BeamSamples]:
-            nonlocal scans
-            if scans is None:
-                scans = load_inputs(run_dir, p)[2]  # noqa: B023 (called within this iteration only)
-            return scans
-
-        # the fusion model, the weight's information and the scale's search, per (method, the kept run's config)
-        fusions: dict[tuple[str, str], tuple[HeadingFusion, F64 | None, MapConsistency]] = {}
-        for m in methods:
-            for path, kept, base in kept_smoothed(keep, run_dir.name, m, overrides):
-                config = json.dumps({**base, **fusion_keys, "estimate": "fused"}, sort_keys=True)
-                seed = int(kept["seed"])
-                label = f"{m}, fused"
-                if (run_dir.name, label, seed, config) in done:
-                    continue
-                if odometry is None:
-                    odometry = read_odometry_motion(run_dir)[1:]
-                t_ns, odo, motion = odometry
-                if not np.array_equal(t_ns, kept["t_ns"]):
-                    raise ValueError(f"{path}: its scan stamps are not those of {run_dir}/odometry; keep the "
-                                     "trajectories of this odometry again")
-                key = (m, json.dumps(base, sort_keys=True))
-                if key not in fusions:  # as the filter run takes it: the weight's information along the odometry
-                    fusions[key] = kept_fusion(m, SlamParams(**{**base, **fusion_keys}), odo, load_scans)
-                model, information, consistency = fusions[key]
-                sigma_deg, median_information = fusion_record(model, information)
-                extra = {} if median_information is None else {
-                    "heading_information": median_information, "fusion_filter_sigma_deg": sigma_deg}
-                beams = load_scans() if consistency.alpha_max > 0 else []
-                fused, jumps, alpha, evidence = fused_estimate(odo, kept["pose"], motion, model, beams, consistency)
-                if consistency.alpha_max > 0:
-                    extra["fusion_alpha"] = alpha
-                if not np.isnan(evidence):  # the guard ran (nan: off, or nothing searched)
-                    extra["fusion_alpha_evidence"] = float(min(evidence, 1e9))
-                truth: Truth = (kept["truth_t_ns"], kept["truth_xy"], kept["truth_yaw"])
-                row = {"seq": run_dir.name, "method": label, "seed": seed, "config": config,
-                       **error_fields(t_ns, np.asarray(fused, np.float64), truth), "scans": len(odo),
-                       "fusion_jumps": jumps, **extra, "from_kept": path.name}
-                append_row(out, row)
-                written += 1
-                say_row(row, f"from {path.name}")
-    return written
-
-
-#: the sequences of worlds without walls around the path (RICH-SLAM's weight is weakest there)
-OPEN_WORLDS = ("sim_outdoor_open", "sim_outdoor_open_drift", "coloradar_2_twin", "coloradar_2_twin_drift")
-#: the window of the gain figure: 100 increments, 10 s at the radar's 10 Hz
-GAIN_WINDOW = "100"
-
-
-def read_window_nees(path: Path) -> dict[str, float]:
-    """``{sequence: heading NEES over 10 s windows}`` from the rows of ``stages.odometry.nees --windows --json``."""
-    out: dict[str, float] = {}
-    for i, line in enumerate(path.read_text().splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            r = json.loads(line)
-            out[r["sequence"]] = float(r["heading_window_nees"][GAIN_WINDOW])
-        except (ValueError, KeyError, TypeError) as exc:
-            raise ValueError(f"{path}:{i}: not a row of stages.odometry.nees --windows ({exc})") from exc
-    return out
-
-
-def gain_points(rows: Sequence[dict[str, Any]], nees: dict[str, float], method: str = "rich_slam"
-                ) -> list[tuple[str, float, list[float], bool]]:
-    """(sequence, window NEES, ``method``'s whole-trajectory yaw RMSE over the odometry's per seed, open world?)
-    for every sequence with both rows and a finite window NEES."""
-    out = []
-    for seq, cells in by_sequence(rows, alignment="whole").items():
-        if "odometry" not in cells or method not in cells or not np.isfinite(nees.get(seq, np.nan)):
-            continue
-        odo = cells["odometry"][0][1]
-        out.append((seq, nees[seq], [yaw / odo for _, yaw in cells[method]], seq in OPEN_WORLDS))
-    return out
 
 
 def by_sequence(rows: Sequence[dict[str, Any]], anchored: bool = False, alignment: Alignment = "paper"
@@ -531,9 +356,9 @@ GOOD_ODOMETRY_DEG = 5.0
 DRIFT_FACTOR = 0.7
 
 
-def targets(rows: Sequence[dict[str, Any]], method: str = "rich_slam, fused",
-            against: str = "fastslam_grid, fused") -> tuple[str, dict[str, tuple[int, int]]]:
-    """Issue 27's targets per sequence, whole-trajectory alignment, a markdown table and the counts
+def targets(rows: Sequence[dict[str, Any]], method: str = "radar_graph",
+            against: str = "rich_slam") -> tuple[str, dict[str, tuple[int, int]]]:
+    """The default method's targets per sequence, whole-trajectory alignment, a markdown table and the counts
     ``{target: (met, of)}``: **no worse** than the odometry in yaw and position where its yaw RMSE is below
     :data:`GOOD_ODOMETRY_DEG`, within the spread over seeds (the cell's mean minus half its range at most the
     odometry's); on the drifting sequences (``*_drift``) the mean yaw **30 % below** the odometry's
@@ -616,30 +441,23 @@ def paper_marks(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, tuple[flo
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("runs", nargs="*", type=Path, help="run folders <runs>/<seq> with ingest/, filter/, odometry/")
-    ap.add_argument("--methods", default="odometry,fastslam_grid,rich_slam")
+    ap.add_argument("--methods", default="odometry,radar_graph,fastslam_grid,rich_slam")
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--set", action="append", default=[], metavar="PARAM=JSON", help="a slam stage parameter")
     ap.add_argument("--out", type=Path, default=Path("table3.jsonl"))
-    ap.add_argument("--estimates", default="", help="comma-separated trajectory estimates (" + ", ".join(ESTIMATES)
-                    + ") written as extra rows '<method>, <estimate>' from the same filter run")
     ap.add_argument("--keep", type=Path, help="also save each row's trajectory (and the ground truth) in this "
                     "folder, one .npz per row: <keep>/<seq>/<method>_seed<S>_<config hash>.npz")
-    ap.add_argument("--from-kept", type=Path, help="instead of running the filters: rows of the fused estimate "
-                    "from the smoothed trajectories kept in this folder (--keep), with the --set fusion_* models")
     ap.add_argument("--table", type=Path, nargs="+", help="print the markdown table of these results files and "
                     "exit (several: one table; a row repeated in a later file replaces the earlier one; cells that "
                     "mix configurations are refused)")
     ap.add_argument("--figure", type=Path, help="with --table: also draw it into this PNG")
     ap.add_argument("--labels", help="with --table: only the rows of these methods, as the rows label them, "
-                    "separated by ';' (e.g. 'odometry;rich_slam, fused;rich_slam_paper'); default: every row")
-    ap.add_argument("--gain-figure", type=Path, help="with --table and --nees: draw rich_slam's whole-trajectory yaw "
-                    "RMSE over the odometry's against the odometry's heading NEES over 10 s windows into this PNG")
-    ap.add_argument("--nees", type=Path, help="rows of `python -m stages.odometry.nees ... --windows --json`")
+                    "separated by ';' (e.g. 'odometry;radar_graph;rich_slam'); default: every row")
     ap.add_argument("--paper", action="store_true", help="with --table: also the ColoRadar twins beside the paper's "
                     "Table III (a line per twin; in the figure, a mark at the paper's value of each method)")
-    ap.add_argument("--targets", metavar="METHOD;OTHER", nargs="?", const="rich_slam, fused;fastslam_grid, fused",
-                    help="with --table: issue 27's targets per sequence for METHOD against the odometry and OTHER "
-                    "(default 'rich_slam, fused;fastslam_grid, fused'), whole-trajectory alignment")
+    ap.add_argument("--targets", metavar="METHOD;OTHER", nargs="?", const="radar_graph;rich_slam",
+                    help="with --table: the targets per sequence for METHOD against the odometry and OTHER "
+                    "(default 'radar_graph;rich_slam'), whole-trajectory alignment")
     ap.add_argument("--anchored", action="store_true", help="with --table: also the errors without alignment "
                     "(rows of runs whose odometry is anchored at the ground truth)")
     ap.add_argument("--alignment", choices=("whole", "paper"), default="whole", help="with --figure: the "
@@ -679,8 +497,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"error: --targets: no row of {method.strip()!r} with the whole-trajectory errors",
                       file=sys.stderr)
                 return 2
-            print(f"\nIssue 27's targets, {method.strip()} (whole-trajectory alignment; mean ± half range over "
-                  f"seeds):\n\n{targets(rows, method.strip(), other.strip() or 'fastslam_grid, fused')[0]}")
+            print(f"\nTargets, {method.strip()} (whole-trajectory alignment; mean ± half range over "
+                  f"seeds):\n\n{targets(rows, method.strip(), other.strip() or 'rich_slam')[0]}")
         if a.figure:
             from stages.evaluate.figures import plot_table3
 
@@ -695,23 +513,6 @@ def main(argv: list[str] | None = None) -> int:
                         title=title)
             os.replace(tmp, a.figure)
             print(f"wrote {a.figure}")
-        if a.gain_figure:
-            if a.nees is None:
-                print("error: --gain-figure needs --nees (rows of stages.odometry.nees --windows --json)",
-                      file=sys.stderr)
-                return 2
-            from stages.evaluate.figures import plot_gain_vs_drift
-
-            try:
-                points = gain_points(rows, read_window_nees(a.nees))
-            except (OSError, ValueError) as exc:
-                print(f"error: {exc}", file=sys.stderr)
-                return 2
-            tmp = a.gain_figure.with_name(a.gain_figure.name + ".tmp.png")
-            plot_gain_vs_drift(tmp, points, title="Where the filter helps: rich_slam against its odometry "
-                               "(whole-trajectory alignment; bar: range over seeds)")
-            os.replace(tmp, a.gain_figure)
-            print(f"wrote {a.gain_figure} ({len(points)} sequences)")
         return 0
     try:
         overrides = slam_overrides(a.set)
@@ -721,19 +522,10 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         ap.error(f"{missing[0]}: no odometry/odometry.parquet; run `pipeline run odometry --seq "
                  f"{missing[0].name}` first")
-    if a.from_kept is not None:
-        try:
-            written = fused_from_kept(a.runs, a.from_kept, overrides, a.out, a.methods.split(","))
-        except (OSError, ValueError, KeyError) as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-        print(f"{written} fused rows from {a.from_kept}")
-        return 0
-    estimates = [e for e in a.estimates.split(",") if e]
-    unknown = [e for e in estimates if e not in ESTIMATES]
+    unknown = [m for m in a.methods.split(",") if m not in METHODS]
     if unknown:
-        ap.error(f"--estimates: unknown {unknown[0]!r}; one of {', '.join(ESTIMATES)}")
-    run(a.runs, a.methods.split(","), [int(s) for s in a.seeds.split(",")], overrides, a.out, estimates, a.keep)
+        ap.error(f"--methods: unknown {unknown[0]!r}; one of {', '.join(METHODS)}")
+    run(a.runs, a.methods.split(","), [int(s) for s in a.seeds.split(",")], overrides, a.out, a.keep)
     return 0
 
 

@@ -19,7 +19,7 @@ import numpy.typing as npt
 import torch
 
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.rbpf import FilterHistory, MotionNoise, Proposal, Resampling, StepResult, run_steps
+from stages.slam.rbpf import FilterHistory, MotionNoise, Resampling, StepResult, run_steps
 from stages.slam.torch_maps import TorchHilbertMaps
 
 F64 = npt.NDArray[np.floating[Any]]
@@ -45,12 +45,6 @@ def cpu_threads(n: int) -> Iterator[None]:
 def wrap_angle_t(a: torch.Tensor) -> torch.Tensor:
     """Angles to (-pi, pi] (as :func:`rbpf.wrap_angle`)."""
     return -(torch.remainder(-a + torch.pi, 2 * torch.pi) - torch.pi)
-
-
-def weighted_mean_pose_t(poses: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """:func:`rbpf.weighted_mean_pose` of poses ``(Np, 3)`` with weights ``(Np,)``, on the device."""
-    yaw = poses[:, 2]
-    return torch.stack([w @ poses[:, 0], w @ poses[:, 1], torch.atan2(w @ torch.sin(yaw), w @ torch.cos(yaw))])
 
 
 def compose_t(x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
@@ -91,11 +85,7 @@ class TorchRBPF:
         rng: np.random.Generator,
         resampling: Resampling = "systematic",
         resample_threshold: float = 0.5,
-        proposal: Proposal | None = None,
-        keep_mean: bool = False,
     ) -> None:
-        """``keep_mean``: resampling keeps the weighted mean pose (as :func:`rbpf.restore_mean`)."""
-        self.keep_mean = keep_mean
         self.maps = maps
         self.device = maps.device
         p0 = torch.as_tensor(np.asarray(initial_pose, dtype=np.float64).reshape(1, 3), device=self.device)
@@ -103,7 +93,6 @@ class TorchRBPF:
         self.logw = torch.full((n_particles,), -float(np.log(n_particles)), dtype=torch.float64, device=self.device)
         self.noise = noise
         self.rng = rng
-        self.proposal = proposal if proposal is not None else Proposal(noise, n_particles, rng)
         self.resampling: Resampling = resampling
         self.resample_threshold = resample_threshold
         self.history = FilterHistory()
@@ -111,15 +100,16 @@ class TorchRBPF:
         self._particles: list[torch.Tensor] = []
         self._parent_log: list[torch.Tensor] = []
         self._tiny = float(np.finfo(np.float64).tiny)
-        self._last_w: torch.Tensor | None = None
 
     @property
     def n_particles(self) -> int:
         return int(self.poses.shape[0])
 
     def _propagate(self, u: npt.ArrayLike) -> None:
-        """eq. 21 with the numpy filter's draws (``rbpf.Proposal``: noise and bias drawn on the host)."""
-        d = self.proposal.draw(u, self.n_particles)
+        """eq. 21 with the numpy filter's draws (:func:`rbpf.propagate`: the noise drawn on the host)."""
+        u = np.asarray(u, dtype=np.float64).reshape(3)
+        s_xy, s_yaw = self.noise.std(u)
+        d = u + self.rng.standard_normal((self.n_particles, 3)) * np.array([s_xy, s_xy, s_yaw])
         self.poses = compose_t(self.poses, torch.as_tensor(d, device=self.device))
 
     def step(self, u: npt.ArrayLike, samples: BeamSamples, first: bool = False,
@@ -133,9 +123,8 @@ class TorchRBPF:
         self.logw = torch.log(torch.clamp_min(w, self._tiny))
         best_t = torch.argmax(w)
         n_eff_t = w.sum() ** 2 / torch.sum(w * w)
-        mean_t = weighted_mean_pose_t(self.poses, w)
         stats = torch.cat([n_eff_t[None], best_t[None].to(torch.float64), self.poses[best_t],
-                           self.maps.check()[None].to(torch.float64), mean_t]).cpu().numpy()  # the one sync per scan
+                           self.maps.check()[None].to(torch.float64)]).cpu().numpy()  # the one sync per scan
         if stats[5] != 0:
             raise np.linalg.LinAlgError(f"a particle map's Cholesky factor failed ({int(stats[5])}); "
                                         "try dtype = float64")
@@ -144,12 +133,8 @@ class TorchRBPF:
         h.best_pose.append(pose)
         h.best_index.append(best)
         h.n_eff.append(n_eff)
-        h.mean_pose.append(stats[6:9].copy())
-        self._last_w = w
         self._particles.append(self.poses.clone())
         self._parent_log.append(self._parents)
-        h.yaw_bias.append(self.proposal.bias_mean(w.cpu().numpy()) if self.proposal.bias is not None else float("nan"))
-        h.wide_share.append(self.proposal.wide_share(w.cpu().numpy()) if self.proposal.wide else float("nan"))
         if observer is not None:
             observer(self, best)
         resampled = n_eff < self.resample_threshold * self.n_particles
@@ -158,13 +143,7 @@ class TorchRBPF:
             pos = torch.as_tensor(resample_positions(self.resampling, self.n_particles, self.rng), device=self.device)
             idx = search_t(w, pos)
             self.poses = self.poses[idx]
-            if self.keep_mean:  # rbpf.restore_mean
-                d = mean_t - weighted_mean_pose_t(self.poses, torch.full_like(w, 1.0 / self.n_particles))
-                d[2] = wrap_angle_t(d[2])
-                self.poses = self.poses + d
             self.maps.select(idx)
-            if self.proposal.bias is not None or self.proposal.wide_mode is not None:
-                self.proposal.select(idx.cpu().numpy())
             self.logw = torch.full_like(self.logw, -float(np.log(self.n_particles)))
             self._parents = idx
         h.resampled.append(resampled)
@@ -178,8 +157,6 @@ class TorchRBPF:
             self.history.particles.extend(list(parts))
             self.history.parents.extend(list(parents))
             self._particles, self._parent_log = [], []
-        if self._last_w is not None:
-            self.history.final_weights = self._last_w.cpu().numpy()
         return self.history
 
     def run(

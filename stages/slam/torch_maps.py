@@ -97,18 +97,12 @@ class TorchBasis:
         return torch.einsum("kqa,kab,kqb->kq", a.to(theta.dtype), T, b.to(theta.dtype))
 
 
-def _log_sigmoid_pair(mean: torch.Tensor, var: torch.Tensor | None, outlier: float = 0.0
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``log o`` and ``log (1 - o)`` with ``o`` of eq. 28, in float64 (``outlier``: as
-    :func:`rbpf.log_occupancy_terms`)."""
+def _log_sigmoid_pair(mean: torch.Tensor, var: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``log o`` and ``log (1 - o)`` with ``o`` of eq. 28, in float64 (as :func:`rbpf.log_occupancy_terms`)."""
     x = mean.to(torch.float64)
     if var is not None:
         x = x / torch.sqrt(1.0 + (torch.pi / 8.0) * var.to(torch.float64))
-    lo, lf = torch.nn.functional.logsigmoid(x), torch.nn.functional.logsigmoid(-x)
-    if outlier <= 0:
-        return lo, lf
-    a, b = float(np.log1p(-outlier)), float(np.log(0.5 * outlier))
-    return torch.logaddexp(a + lo, torch.full_like(lo, b)), torch.logaddexp(a + lf, torch.full_like(lf, b))
+    return torch.nn.functional.logsigmoid(x), torch.nn.functional.logsigmoid(-x)
 
 
 class TorchHilbertMaps:
@@ -128,12 +122,9 @@ class TorchHilbertMaps:
         device: str | torch.device = "cpu",
         block_bytes: int | None = None,
     ) -> None:
-        """The maps of :class:`rbpf.MapModel` on a device; the Kalman update with one label noise only (else
-        ValueError naming what is missing)."""
+        """The maps of :class:`rbpf.MapModel` on a device; the Kalman update only (else a ValueError)."""
         if model.update != "kalman":
             raise ValueError("the torch backend implements the Kalman map update; use backend = numpy for laplace")
-        if model.endpoint_noise_variance is not None:
-            raise ValueError("endpoint_noise_variance runs on the numpy backend only; set slam.backend = numpy")
         self.model = model
         lengthscale, signal_variance, noise_variance = model.lengthscale, model.signal_variance, model.noise_variance
         weighting, dtype, form = model.weighting, model.dtype, model.form
@@ -221,18 +212,18 @@ class TorchHilbertMaps:
             theta, mean, var_rows = self._covariance(lo, hi, phi, rows, labels)
         # -- weights (eq. 22-30), against the maps before this scan's update
         var = None if var_rows is None else var_rows[0][:, :N]
-        log_o, log_free = _log_sigmoid_pair(mean, var, w.outlier)
-        total = w.free_weight * log_free[:, free].sum(dim=1)
+        log_o, log_free = _log_sigmoid_pair(mean, var)
+        total = log_free[:, free].sum(dim=1)
         if not et:
-            return w.exponent * (total + log_o[:, ends].sum(dim=1))
+            return total + log_o[:, ends].sum(dim=1)
         mean_q = (torch.einsum("kqm,km->kq", extra, theta) if extra is not None and w.et_variance == "exact"
                   else tb.mean_at(theta, q.reshape(b_, B * K, 2))).reshape(b_, B, K)
         var_q = None
         if var_rows is not None:
             var_q = self._ring_variance(var_rows, ends, N, K)
-        log_q, _ = _log_sigmoid_pair(mean_q, var_q, w.outlier)
+        log_q, _ = _log_sigmoid_pair(mean_q, var_q)
         best = torch.maximum(log_q.amax(dim=2), log_o[:, ends])
-        return w.exponent * (total + best.sum(dim=1))
+        return total + best.sum(dim=1)
 
     def _ring_variance(self, var_rows: tuple[torch.Tensor, torch.Tensor, torch.Tensor], ends: torch.Tensor,
                        N: int, K: int) -> torch.Tensor:
