@@ -43,6 +43,10 @@ def test_a_cell_that_mixes_configurations_in_one_file_is_refused_naming_both(tmp
     with pytest.raises(ValueError, match=r"demo rich_slam: rows of different configurations.*a\.jsonl:1.*a\.jsonl:2"):
         table3.read_rows([a])
     assert table3.main(["--table", str(a)]) == 2
+    # a calibration grid: each configuration a row of its own, the defaults' under the bare method
+    rows, _ = table3.read_rows([a], by_config=True)
+    assert sorted(r["method"] for r in rows) == ["rich_slam", 'rich_slam {"endpoint_tolerance": 0.0}']
+    assert table3.main(["--table", str(a), "--by-config"]) == 0
 
 
 def test_a_later_file_with_a_cell_in_another_configuration_supersedes_the_earlier_rows(tmp_path: Path) -> None:

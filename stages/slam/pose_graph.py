@@ -6,9 +6,11 @@ radar endpoints of the scans nearest to it, accumulated along the odometry into 
 scans hold 30-100 points). Loop closures are proposed between keyframes that are close in the odometry's
 estimate but far apart along the path, verified by registration of their local clouds with a wide yaw search
 (:mod:`registration`, a correlative scan matcher whose search gives the covariance), and optimised with
-graduated non-convexity (GTSAM's GNC with a truncated quadratic, the odometry factors known inliers), which drops
-a wrong closure. Every scan's pose is its odometry pose moved by the correction of its two keyframes,
-interpolated on SE(2).
+graduated non-convexity (Yang et al., RA-L 2020, the truncated quadratic) on the closures, which drops a wrong one.
+The odometry's heading drifts with the gyro bias its filter did not remove: each keyframe carries a yaw-rate bias
+(a random walk, GTSAM variables beside the poses) that corrects the odometry factor's yaw over its interval, so a
+closure corrects a drift that grows with time instead of bending the chain where the closure pulls. Every scan's
+pose is its odometry pose moved by the correction of its two keyframes, interpolated on SE(2).
 """
 
 from __future__ import annotations
@@ -43,7 +45,8 @@ class GraphModel:
     min_points: int = 30  # fewest endpoints in either local cloud of a loop candidate
     loop_every: int = 2  # keyframes between loop searches of the same place
     robust: Literal["gnc", "none"] = "gnc"
-    yaw_rate_sigma: float = 0.03  # rad/s: an unmodelled gyro bias, added to the odometry factors' yaw variance
+    bias_sigma0: float = 0.01  # rad/s: prior std of the yaw-rate bias the odometry leaves
+    bias_walk: float = 1e-4  # rad/s/sqrt(s): its random walk
     matcher: MatcherModel = field(default_factory=MatcherModel)
 
 
@@ -58,6 +61,7 @@ class Edge:
     cov: F64  # (3, 3) in j's body frame
     inliers: float = 1.0
     accepted: bool = True
+    dt: float = 0.0  # s between the keyframes (odometry factors: the interval the yaw-rate bias acts over)
 
 
 @dataclass
@@ -69,6 +73,7 @@ class GraphResult:
     keyframe_poses: F64  # (K, 3) optimised
     keyframe_cov: F64  # (K, 3, 3) marginal covariances (body frame)
     edges: list[Edge]
+    bias: F64 = field(default_factory=lambda: np.zeros(0))  # (K,) yaw-rate bias at each keyframe (rad/s)
     warnings: list[str] = field(default_factory=list)
 
     def count(self, kind: str, accepted: bool | None = None) -> int:
@@ -142,20 +147,18 @@ def keyframe_clouds(odometry: F64, endpoints: Sequence[F64], keyframes: I64, res
     return out
 
 
-def odometry_edges(odometry: F64, cov: F64, keyframes: I64, t_s: F64, yaw_rate_sigma: float) -> list[Edge]:
+def odometry_edges(odometry: F64, cov: F64, keyframes: I64, t_s: F64) -> list[Edge]:
     """Relative-pose factors between consecutive keyframes: the odometry's increments between them, their
-    covariance propagated from the per-scan increment covariances ``cov (T, 3, 3)`` (row i: into scan i), plus
-    ``(yaw_rate_sigma dt)^2`` on the yaw for a gyro bias the odometry's covariance does not hold (``t_s``: scan
-    times in seconds)."""
+    covariance propagated from the per-scan increment covariances ``cov (T, 3, 3)`` (row i: into scan i), and the
+    interval ``dt`` from the scan times ``t_s`` (s)."""
     edges = []
     for k in range(1, len(keyframes)):
         a, b = int(keyframes[k - 1]), int(keyframes[k])
         inc = between(odometry[a:b], odometry[a + 1:b + 1])
         _, sigma = propagate(inc, cov[a + 1:b + 1])
         z = between(odometry[a], odometry[b])
-        dt = float(t_s[b] - t_s[a])
-        sigma = 0.5 * (sigma + sigma.T) + np.diag([1e-8, 1e-8, 1e-10 + (yaw_rate_sigma * dt) ** 2])
-        edges.append(Edge("odometry", k - 1, k, z, sigma))
+        sigma = 0.5 * (sigma + sigma.T) + np.diag([1e-8, 1e-8, 1e-10])
+        edges.append(Edge("odometry", k - 1, k, z, sigma, dt=float(t_s[b] - t_s[a])))
     return edges
 
 
@@ -217,45 +220,146 @@ def import_gtsam() -> Any:
     return gtsam
 
 
-def optimise(initial: F64, edges: list[Edge], robust: Literal["gnc", "none"]) -> tuple[F64, F64, list[bool]]:
-    """Batch optimisation of the keyframe poses (the first held by a tight prior): the poses, their marginal
-    covariances and, per edge, whether the optimiser kept it (GNC's weight above one half; always for the
-    known inliers)."""
+def bias_key(k: int) -> int:
+    """GTSAM key of keyframe ``k``'s yaw-rate bias (the poses are keys ``0 .. K-1``)."""
+    gtsam = import_gtsam()
+    return int(gtsam.symbol("b", k))
+
+
+def odometry_bias_factor(e: Edge) -> Any:
+    """The odometry factor between keyframes ``e.i`` and ``e.j`` with keyframe ``e.i``'s yaw-rate bias ``b``: the
+    odometry measured the relative pose followed by a turn of ``b dt`` (its gyro's bias), so the error is
+    ``Log(z^-1 (X_i^-1 X_j) R(b dt))`` with the factor's covariance. Jacobians by central differences on the
+    tangent spaces (three variables, a cheap error)."""
+    gtsam = import_gtsam()
+    z = gtsam.Pose2(*e.z)
+    dt, bkey = e.dt, bias_key(e.i)
+
+    def error(xi: Any, xj: Any, b: float) -> F64:
+        return np.asarray(gtsam.Pose2.Logmap(z.between(xi.between(xj).compose(gtsam.Pose2(0.0, 0.0, b * dt)))))
+
+    def evaluate(_factor: Any, values: Any, jacobians: Any) -> F64:
+        xi, xj, b = values.atPose2(e.i), values.atPose2(e.j), float(values.atVector(bkey)[0])
+        if jacobians is not None:
+            h = 1e-6
+            ji, jj = np.zeros((3, 3)), np.zeros((3, 3))
+            for d in range(3):
+                v = np.zeros(3)
+                v[d] = h
+                ji[:, d] = (error(xi.retract(v), xj, b) - error(xi.retract(-v), xj, b)) / (2 * h)
+                jj[:, d] = (error(xi, xj.retract(v), b) - error(xi, xj.retract(-v), b)) / (2 * h)
+            jb = ((error(xi, xj, b + h) - error(xi, xj, b - h)) / (2 * h)).reshape(3, 1)
+            jacobians[0], jacobians[1], jacobians[2] = ji, jj, jb
+        return error(xi, xj, b)
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Gaussian.Covariance(e.cov), [e.i, e.j, bkey], evaluate)
+
+
+def _loop_factor(e: Edge, weight: float = 1.0) -> Any:
+    gtsam = import_gtsam()
+    return gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.z), gtsam.noiseModel.Gaussian.Covariance(e.cov / weight))
+
+
+def gnc_weights(graph: Any, values: Any, loops: list[Edge], cbar2: float = 11.345, step: float = 1.4,
+                max_iter: int = 100) -> tuple[Any, F64]:
+    """Graduated non-convexity with the truncated quadratic (Yang et al., RA-L 2020) over the loop closures only,
+    the factors of ``graph`` known inliers: the closures' weights (0: rejected, 1: kept) and the solution. A
+    closure's whitened squared residual above ``cbar2`` (the 0.99 quantile of chi^2 with 3 dof) is an outlier at
+    convergence. GTSAM's own GNC cannot copy the odometry's custom factors, hence this loop."""
+    gtsam = import_gtsam()
+    lm = gtsam.LevenbergMarquardtParams()
+    full = gtsam.NonlinearFactorGraph(graph)
+    for e in loops:
+        full.add(_loop_factor(e))
+    values = gtsam.LevenbergMarquardtOptimizer(full, values, lm).optimize()
+    r2 = np.array([2.0 * _loop_factor(e).error(values) for e in loops])
+    w = np.ones(len(loops))
+    if r2.max() <= cbar2:
+        return values, w
+    mu = cbar2 / max(2.0 * r2.max() - cbar2, 1e-12)
+    for _ in range(max_iter):
+        weighted = gtsam.NonlinearFactorGraph(graph)
+        for e, wi in zip(loops, w, strict=True):
+            if wi > 1e-6:
+                weighted.add(_loop_factor(e, wi))
+        values = gtsam.LevenbergMarquardtOptimizer(weighted, values, lm).optimize()
+        r2 = np.array([2.0 * _loop_factor(e).error(values) for e in loops])
+        lo, hi = mu / (mu + 1.0) * cbar2, (mu + 1.0) / mu * cbar2
+        w_new = np.where(r2 <= lo, 1.0, np.where(r2 >= hi, 0.0, np.sqrt(cbar2 * mu * (mu + 1.0) /
+                                                                        np.maximum(r2, 1e-12)) - mu))
+        settled = bool(np.all(np.abs(w_new - w) < 1e-6))
+        w = np.clip(w_new, 0.0, 1.0)
+        if settled and np.all((w < 1e-6) | (w > 1 - 1e-6)):
+            break
+        mu *= step
+    return values, w
+
+
+def optimise(initial: F64, edges: list[Edge], robust: Literal["gnc", "none"], bias_sigma0: float = 0.01,
+             bias_walk: float = 1e-4) -> tuple[F64, F64, list[bool], F64]:
+    """Batch optimisation of the keyframe poses (the first held by a tight prior) and their yaw-rate biases
+    (prior ``bias_sigma0`` at the first, a random walk of ``bias_walk`` between consecutive keyframes over their
+    odometry factor's ``dt``; an edge with ``dt = 0`` is a plain relative-pose factor): the poses, their marginal
+    covariances, per edge whether the optimiser kept it (a loop closure whose GNC weight ends above one half;
+    always the odometry) and the biases."""
     gtsam = import_gtsam()
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
+    K = len(initial)
+    timed = any(e.kind != "loop" and e.dt > 0 for e in edges)  # without intervals there is no bias to estimate
     for k, p in enumerate(initial):
         values.insert(k, gtsam.Pose2(*p))
+        if timed:
+            values.insert(bias_key(k), np.zeros(1))
     graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*initial[0]),
                                      gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-4, 1e-4, 1e-5]))))
+    if timed:
+        graph.add(gtsam.PriorFactorVector(bias_key(0), np.zeros(1),
+                                          gtsam.noiseModel.Isotropic.Sigma(1, bias_sigma0)))
+    dts = np.zeros(K)
     for e in edges:
-        graph.add(gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.z), gtsam.noiseModel.Gaussian.Covariance(e.cov)))
-    loops = [n + 1 for n, e in enumerate(edges) if e.kind == "loop"]
-    kept = [True] * len(edges)
+        if e.kind == "loop":
+            continue
+        if e.dt > 0:
+            graph.add(odometry_bias_factor(e))
+            if e.j == e.i + 1:
+                dts[e.j] = e.dt
+        else:
+            graph.add(_loop_factor(e))  # a plain relative-pose factor
+    for k in range(1, K if timed else 0):
+        walk = gtsam.noiseModel.Isotropic.Sigma(1, max(bias_walk * np.sqrt(dts[k]), 1e-7))
+        graph.add(gtsam.BetweenFactorVector(bias_key(k - 1), bias_key(k), np.zeros(1), walk))
+    loops = [e for e in edges if e.kind == "loop"]
     lm = gtsam.LevenbergMarquardtParams()
+    weights: F64 = np.ones(len(loops))
     if loops and robust == "gnc":
-        params = gtsam.GncLMParams(lm)
-        params.setLossType(gtsam.GncLossType.TLS)
-        params.setKnownInliers([i for i in range(graph.size()) if i not in set(loops)])
-        opt = gtsam.GncLMOptimizer(graph, values, params)
-        result = opt.optimize()
-        w = np.asarray(opt.getWeights())
-        kept = [bool(w[n + 1] > 0.5) for n in range(len(edges))]
-        clean = gtsam.NonlinearFactorGraph()  # marginals of the graph without the rejected closures
-        for n in range(graph.size()):
-            if n == 0 or kept[n - 1]:
-                clean.add(graph.at(n))
-        graph = clean
+        result, weights = gnc_weights(graph, values, loops)
+    elif loops:
+        full = gtsam.NonlinearFactorGraph(graph)
+        for e in loops:
+            full.add(_loop_factor(e))
+        result = gtsam.LevenbergMarquardtOptimizer(full, values, lm).optimize()
     else:
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, lm).optimize()
-    poses = np.array([[result.atPose2(k).x(), result.atPose2(k).y(), result.atPose2(k).theta()]
-                      for k in range(len(initial))])
+    keep_loop = iter(bool(w > 0.5) for w in weights)
+    kept = [next(keep_loop) if e.kind == "loop" else True for e in edges]
+    clean = gtsam.NonlinearFactorGraph(graph)  # the solution and marginals without the rejected closures
+    for e, k in zip(edges, kept, strict=True):
+        if e.kind == "loop" and k:
+            clean.add(_loop_factor(e))
+    if loops and robust == "gnc":
+        # with every closure rejected the initial values (the odometry, zero bias) may already satisfy every
+        # remaining factor: then they are the solution, exactly, not the optimiser's approximation of it
+        exact = not any(w > 0.5 for w in weights) and clean.error(values) < 1e-12
+        result = values if exact else gtsam.LevenbergMarquardtOptimizer(clean, result, lm).optimize()
+    poses = np.array([[result.atPose2(k).x(), result.atPose2(k).y(), result.atPose2(k).theta()] for k in range(K)])
+    bias = np.array([float(result.atVector(bias_key(k))[0]) if timed else 0.0 for k in range(K)])
     try:
-        marg = gtsam.Marginals(graph, result)
-        cov = np.stack([marg.marginalCovariance(k) for k in range(len(initial))])
-    except RuntimeError:  # an indeterminate system (should not happen with the prior and the odometry chain)
-        cov = np.full((len(initial), 3, 3), np.nan)
-    return poses, cov, kept
+        marg = gtsam.Marginals(clean, result)
+        cov = np.stack([marg.marginalCovariance(k) for k in range(K)])
+    except RuntimeError:  # an indeterminate system (should not happen with the priors and the odometry chain)
+        cov = np.full((K, 3, 3), np.nan)
+    return poses, cov, kept, bias
 
 
 def interpolate(odometry: F64, keyframes: I64, keyframe_poses: F64) -> F64:
@@ -289,14 +393,14 @@ def optimise_graph(odometry: F64, cov: F64, t_s: F64, endpoints: Sequence[F64], 
                          f"{model.keyframe_distance} m and slam.graph_keyframe_angle = {model.keyframe_angle_deg} deg "
                          "over the log: one keyframe, no graph")
     clouds = keyframe_clouds(odometry, endpoints, keyframes, model.matcher.resolution)
-    odo = odometry_edges(odometry, cov, keyframes, np.asarray(t_s, np.float64), model.yaw_rate_sigma)
+    odo = odometry_edges(odometry, cov, keyframes, np.asarray(t_s, np.float64))
     poses = odometry[keyframes]
     loops = loop_closures(poses, clouds, model)
     edges = [*odo, *loops]
-    opt, kcov, kept = optimise(poses, edges, model.robust)
-    edges = [Edge(e.kind, e.i, e.j, e.z, e.cov, e.inliers, k) for e, k in zip(edges, kept, strict=True)]
+    opt, kcov, kept, bias = optimise(poses, edges, model.robust, model.bias_sigma0, model.bias_walk)
+    edges = [Edge(e.kind, e.i, e.j, e.z, e.cov, e.inliers, k, e.dt) for e, k in zip(edges, kept, strict=True)]
     rejected = sum(e.kind == "loop" and not e.accepted for e in edges)
     if rejected:
         warnings.append(f"the optimiser rejected {rejected} of {len(loops)} loop closures (inconsistent with the "
                         "rest of the graph); graph_edges.parquet lists them with accepted = false")
-    return GraphResult(interpolate(odometry, keyframes, opt), keyframes, opt, kcov, edges, warnings)
+    return GraphResult(interpolate(odometry, keyframes, opt), keyframes, opt, kcov, edges, bias, warnings)

@@ -118,8 +118,10 @@ class SlamParams(StageParams):
     graph_keyframe_angle: float = Field(15.0, gt=0, description="radar_graph: or every this many degrees turned")
     graph_local_keyframes: int = Field(10, ge=1, le=1000, description="radar_graph: keyframes in the local cloud "
                                        "of each end of a loop closure")
-    graph_yaw_rate_sigma: float = Field(0.03, ge=0, description="radar_graph: rad/s of gyro bias the odometry's "
-                                        "covariance does not hold, added to each odometry factor's yaw variance")
+    graph_bias_sigma0: float = Field(0.01, gt=0, le=1, description="radar_graph: prior std of the yaw-rate bias "
+                                     "the odometry leaves, rad/s (each keyframe carries one)")
+    graph_bias_walk: float = Field(1e-4, gt=0, le=1, description="radar_graph: random walk of that bias, "
+                                   "rad/s/sqrt(s)")
     graph_loop_radius: float = Field(3.0, gt=0, description="radar_graph: keyframes this close on the odometry "
                                      "are loop candidates, and the verification's translation search (m)")
     graph_loop_min_travel: float = Field(15.0, gt=0, description="radar_graph: path length between the two "
@@ -173,7 +175,7 @@ class SlamParams(StageParams):
         return GraphModel(
             keyframe_distance=self.graph_keyframe_distance, keyframe_angle_deg=self.graph_keyframe_angle,
             local_keyframes=self.graph_local_keyframes,
-            yaw_rate_sigma=self.graph_yaw_rate_sigma, loop_radius=self.graph_loop_radius,
+            bias_sigma0=self.graph_bias_sigma0, bias_walk=self.graph_bias_walk, loop_radius=self.graph_loop_radius,
             loop_min_travel=self.graph_loop_min_travel, loop_search_yaw_deg=self.graph_loop_search_yaw,
             loop_min_inliers=self.graph_loop_min_inliers, robust=self.graph_robust,
             matcher=MatcherModel(sigma=self.graph_match_sigma, temperature=self.graph_match_temperature))
@@ -428,7 +430,7 @@ def write_graph(ctx: StageContext, g: GraphResult, scans: npt.NDArray[np.int64],
         "t_ns": pa.array(t_ns[k], pa.int64()), "x": g.keyframe_poses[:, 0], "y": g.keyframe_poses[:, 1],
         "yaw": g.keyframe_poses[:, 2], "cov_xx": g.keyframe_cov[:, 0, 0], "cov_yy": g.keyframe_cov[:, 1, 1],
         "cov_yawyaw": g.keyframe_cov[:, 2, 2], "cov_xy": g.keyframe_cov[:, 0, 1],
-        "cov_xyaw": g.keyframe_cov[:, 0, 2], "cov_yyaw": g.keyframe_cov[:, 1, 2],
+        "cov_xyaw": g.keyframe_cov[:, 0, 2], "cov_yyaw": g.keyframe_cov[:, 1, 2], "yaw_rate_bias": g.bias,
     }), ctx.output("graph_keyframes.parquet"))
     e = g.edges
     pq.write_table(pa.table({

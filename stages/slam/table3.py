@@ -148,14 +148,15 @@ def config_key(config: str, defaults: dict[str, Any] | None = None) -> str:
 ODOMETRY_SIGNATURE = ("pos_rmse_m", "yaw_rmse_deg", "pos_rmse_whole_m", "yaw_rmse_whole_deg")
 
 
-def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
+def read_rows(paths: Sequence[Path], by_config: bool = False) -> tuple[list[dict[str, Any]], list[str]]:
     """The rows of several results files, for one table: a (sequence, method, seed) row that a later file
     repeats is replaced by it; where a later file's odometry row of a sequence differs from an earlier file's
     (the odometry was run again with other code or parameters), every row of that sequence in the earlier file
     is dropped, since its filters ran on the other odometry; likewise a (sequence, method) cell's rows in an earlier
     file are dropped where a later file has that cell in another configuration (:func:`config_key`: a default
     changed between them); a cell whose rows in one file were made with different configurations is refused,
-    naming both, since its mean would mix them. Returns the rows
+    naming both, since its mean would mix them; with ``by_config`` each configuration is a method of its own
+    instead (``"radar_graph {\"graph_bias_walk\": 0.001}"``; the defaults' is the bare method). Returns the rows
     and notes (replacements, dropped rows). Raises ``ValueError`` with the file and line for a line that is not
     a JSON row."""
     defaults = SlamParams().model_dump()
@@ -184,6 +185,9 @@ def read_rows(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], list[str]]:
                     config = config_key(r.get("config", ""), defaults)
                 except json.JSONDecodeError as exc:
                     raise ValueError(f"{path}:{i}: its config is not JSON ({exc})") from None
+                if by_config and config != "{}":
+                    key = (key[0], f"{key[1]} {config}", key[2])
+                    r = {**r, "method": key[1]}
                 cell_config[key[:2]] = (f, config)
             per_file[-1].append((key, r, f"{path}:{i}", config))
     latest = {seq: f for f, seq in sorted(odometry)}  # seq -> the last file with an odometry row of it
@@ -451,6 +455,8 @@ def main(argv: list[str] | None = None) -> int:
                     "exit (several: one table; a row repeated in a later file replaces the earlier one; cells that "
                     "mix configurations are refused)")
     ap.add_argument("--figure", type=Path, help="with --table: also draw it into this PNG")
+    ap.add_argument("--by-config", action="store_true", help="with --table: each configuration of a method is a row "
+                    "of its own, labelled by what differs from the defaults (a calibration grid)")
     ap.add_argument("--labels", help="with --table: only the rows of these methods, as the rows label them, "
                     "separated by ';' (e.g. 'odometry;radar_graph;rich_slam'); default: every row")
     ap.add_argument("--paper", action="store_true", help="with --table: also the ColoRadar twins beside the paper's "
@@ -466,7 +472,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.table:
         try:
-            rows, notes = read_rows(a.table)
+            rows, notes = read_rows(a.table, by_config=a.by_config)
         except ValueError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
