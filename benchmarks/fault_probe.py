@@ -240,40 +240,37 @@ def _bool(lab: Lab) -> None:
                "a bool where a number is expected")
 
 
-@probe("params: slam.n_particles=abc")
-def _text_for_int(lab: Lab) -> None:
-    lab.expect(lab.cli("status", "--seq", "demo", "--set", "slam.n_particles=abc"), 2, "slam.n_particles")
-
-
-@probe("params: unknown parameter")
-def _unknown_param(lab: Lab) -> None:
-    lab.expect(lab.cli("status", "--seq", "demo", "--set", "slam.n_particle=5"), 2, "did you mean")
-
-
-@probe("params: unknown stage in --set")
-def _unknown_stage_set(lab: Lab) -> None:
-    lab.expect(lab.cli("status", "--seq", "demo", "--set", "slma.n_particles=5"), 2, "unknown stage")
-
-
-@probe("params: --set without '='")
-def _malformed_set(lab: Lab) -> None:
-    lab.expect(lab.cli("status", "--seq", "demo", "--set", "slam.n_particles"), 2, "STAGE.PARAM=VALUE")
-
-
 @probe("params: a run that cannot fit in memory is refused before it starts")
 def _memory(lab: Lab) -> None:
     r = _src(lab, lab.radar_imu, "--set", "slam.n_particles=100000", "--set", "slam.n_basis=4096", stage="slam")
     lab.expect(r, 2, "of memory", "slam.n_particles=100000")
 
 
-@probe("params: voxel.resolution=0")
-def _zero_resolution(lab: Lab) -> None:
-    lab.expect(lab.cli("status", "--seq", "demo", "--set", "voxel.resolution=0"), 2, "voxel.resolution")
+#: command-line mistakes on a registered sequence: (name, --set or other arguments, words the error must hold)
+STATUS_MISTAKES: list[tuple[str, tuple[str, ...], str]] = [
+    ("params: slam.n_particles=abc", ("--set", "slam.n_particles=abc"), "slam.n_particles"),
+    ("params: unknown parameter", ("--set", "slam.n_particle=5"), "did you mean"),
+    ("params: unknown stage in --set", ("--set", "slma.n_particles=5"), "unknown stage"),
+    ("params: --set without '='", ("--set", "slam.n_particles"), "STAGE.PARAM=VALUE"),
+    ("params: voxel.resolution=0", ("--set", "voxel.resolution=0"), "voxel.resolution"),
+    ("workflow: unknown name", ("--workflow", "no_such_flow"), "no_such_flow"),
+]
 
 
-@probe("workflow: unknown name")
-def _unknown_workflow(lab: Lab) -> None:
-    lab.expect(lab.cli("status", "--seq", "demo", "--workflow", "no_such_flow"), 2, "no_such_flow")
+def _status_mistake(args: tuple[str, ...], needle: str) -> Callable[[Lab], None]:
+    def check(lab: Lab) -> None:
+        lab.expect(lab.cli("status", "--seq", "demo", *args), 2, needle)
+
+    return check
+
+
+for _name, _args, _needle in STATUS_MISTAKES:
+    probe(_name)(_status_mistake(_args, _needle))
+
+
+@probe("sequence: unknown name")
+def _unknown_seq(lab: Lab) -> None:
+    lab.expect(lab.cli("status", "--seq", "demoo"), 2, "demoo")
 
 
 @probe("workflow: malformed TOML file")
@@ -281,11 +278,6 @@ def _bad_workflow(lab: Lab) -> None:
     p = lab.root / "bad_flow.toml"
     p.write_text("[workflow\nstages = 3\n")
     lab.expect(lab.cli("status", "--seq", "demo", "--workflow", str(p)), 2, "bad_flow.toml")
-
-
-@probe("sequence: unknown name")
-def _unknown_seq(lab: Lab) -> None:
-    lab.expect(lab.cli("status", "--seq", "demoo"), 2, "demoo")
 
 
 @probe("stage: unknown name")

@@ -8,7 +8,6 @@ unless ``--force``.
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 from typing import Annotated
@@ -19,6 +18,7 @@ from rich.markup import escape
 
 from pipeline.errors import UserError
 from pipeline.paths import data_dir
+from pipeline.store import write_text_atomic
 
 app = typer.Typer(name="profile", help="dataset profiles: topics, fields, frames and extrinsics of a rig",
                   no_args_is_help=True, add_completion=False)
@@ -74,11 +74,6 @@ def new(
     if not path.parent.is_dir():
         raise UserError(f"{path}: folder {path.parent} does not exist")
     text = profile_text(from_, path.stem, str(path))
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_text_atomic(path, text)
     console.print(escape(f"wrote {path} (from '{from_}'); edit [topics], [frames] and [extrinsics.*], then run "
                          f"`pipeline run all --source LOG --dataset {path}`"), soft_wrap=True, highlight=False)

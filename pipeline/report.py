@@ -20,7 +20,7 @@ from rich.table import Table
 from pipeline.errors import UserError
 from pipeline.registry import stage_report
 from pipeline.results import METRICS_FILE, gather, metrics_path, read_records
-from pipeline.store import RunStore
+from pipeline.store import RunStore, write_text_atomic
 
 __all__ = ["METRICS_FILE", "build_tables", "comparison_table", "gather", "metrics_path", "read_records",
            "report_sequences", "resolve_sequences", "rich_table", "sequence_context", "stage_report", "sweep_records",
@@ -154,9 +154,6 @@ def write_outputs(records: Sequence[dict[str, Any]], out: Path, title: str,
                   runs_dir: Path | None = None, stale: Mapping[str, str] | None = None) -> list[Path]:
     """``out`` (markdown, with a list of the stale rows under the title) and the combined long table beside it
     (``<out>.parquet``), each written to a temporary name and renamed into place."""
-    import os
-    import uuid
-
     import numpy as np
 
     from schemas import write_artifact
@@ -169,12 +166,7 @@ def write_outputs(records: Sequence[dict[str, Any]], out: Path, title: str,
         head, _, rest = text.partition("\n")
         text = "\n".join([head, "", "Stale rows (computed from results that have been replaced since):", "", *lines,
                           "", rest.lstrip("\n")])
-    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_text_atomic(out, text)
     cols: dict[str, Any] = {k: [r.get(k) for r in records] for k in ("seq", "method", "metric")}
     cols["value"] = np.array([r["value"] for r in records], np.float64)
     cols["features"] = np.array([int(r.get("features") or 0) for r in records], np.int32)

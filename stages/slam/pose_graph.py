@@ -331,6 +331,8 @@ def optimise(initial: F64, edges: list[Edge], robust: Literal["gnc", "none"], bi
         graph.add(gtsam.BetweenFactorVector(bias_key(k - 1), bias_key(k), np.zeros(1), walk))
     loops = [e for e in edges if e.kind == "loop"]
     lm = gtsam.LevenbergMarquardtParams()
+    lm.setRelativeErrorTol(1e-12)  # the final solve to convergence: a looser stop leaves GNC's last iterate
+    lm.setAbsoluteErrorTol(1e-12)
     weights: F64 = np.ones(len(loops))
     if loops and robust == "gnc":
         result, weights = gnc_weights(graph, values, loops)
