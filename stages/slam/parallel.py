@@ -67,9 +67,13 @@ def _worker_main(conn: Connection, spec: _Spec) -> None:
             try:
                 _kind, poses, points, labels, beam, origin = msg
                 samples = BeamSamples(points, labels, beam, points[labels > 0], origin)
-                conn.send(("ok", maps.weigh_and_update(poses, samples)))
+                reply: tuple[str, Any] = ("ok", maps.weigh_and_update(poses, samples))
             except Exception as exc:  # report, keep serving
-                conn.send(("error", f"{type(exc).__name__}: {exc}"))
+                reply = ("error", f"{type(exc).__name__}: {exc}")
+            try:
+                conn.send(reply)
+            except OSError:  # the parent is gone (killed) while this scan was weighed: leave quietly
+                break
     finally:
         del arrays, maps
         for shm, _ in blocks:

@@ -455,6 +455,8 @@ def main(argv: list[str] | None = None) -> int:
                     "exit (several: one table; a row repeated in a later file replaces the earlier one; cells that "
                     "mix configurations are refused)")
     ap.add_argument("--figure", type=Path, help="with --table: also draw it into this PNG")
+    ap.add_argument("--write", type=Path, help="with --table: write the tables (markdown) to this file, headed by the "
+                    "command that regenerates it, instead of printing them")
     ap.add_argument("--by-config", action="store_true", help="with --table: each configuration of a method is a row "
                     "of its own, labelled by what differs from the defaults (a calibration grid)")
     ap.add_argument("--labels", help="with --table: only the rows of these methods, as the rows label them, "
@@ -470,6 +472,24 @@ def main(argv: list[str] | None = None) -> int:
                     "errors drawn (whole: the whole-trajectory alignment, where the rows have it; paper: the paper's "
                     "protocol)")
     a = ap.parse_args(argv)
+    if a.table and a.write:
+        import contextlib
+        import io
+        import shlex
+
+        from pipeline.store import write_text_atomic
+
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            code = main([x for x in (argv if argv is not None else sys.argv[1:]) if x not in ("--write", str(a.write))])
+        if code == 0:
+            args = " ".join(shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))
+            write_text_atomic(a.write, f"<!-- written by `python -m stages.slam.table3 {args}`; do not edit -->\n\n"
+                              + buf.getvalue())
+            print(f"wrote {a.write}")
+        else:
+            sys.stdout.write(buf.getvalue())
+        return code
     if a.table:
         try:
             rows, notes = read_rows(a.table, by_config=a.by_config)
