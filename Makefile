@@ -3,6 +3,8 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
+# setuptools' notes on editable installs (one block per install) are for packagers, not for the user of `make`
+EDITABLE := PYTHONWARNINGS=ignore::UserWarning $(PIP) install -q -e
 # The CPU build of PyTorch for the optional `learn` extra (the `complete` stage). Override for CUDA.
 TORCH_SPEC ?= torch==2.13.0
 SEQ ?= demo
@@ -16,12 +18,12 @@ $(VENV)/bin/python:
 # one stamp per install flavour, redone when pyproject.toml changes
 $(VENV)/.stamp-run: pyproject.toml | $(VENV)/bin/python
 	$(PIP) install -q "$(TORCH_SPEC)"
-	$(PIP) install -q -e ".[learn]"
+	$(EDITABLE) ".[learn]"
 	touch $@
 
 $(VENV)/.stamp-dev: pyproject.toml | $(VENV)/bin/python
 	$(PIP) install -q "$(TORCH_SPEC)"
-	$(PIP) install -q -e ".[dev,learn,distributed]"
+	$(EDITABLE) ".[dev,learn,distributed]"
 	touch $@ $(VENV)/.stamp-run
 
 demo: $(VENV)/.stamp-run
