@@ -3,12 +3,12 @@
 ``model = uppointr`` (default): runs a trained UpPoinTr checkpoint over every radar patch of the sequence,
 puts the predicted patches back in world coordinates, merges them and assembles the map at the voxel
 resolution: ``assembly = average`` (the paper's Sec. V, the mean of the points in each voxel; the default) or
-``snap`` (the voxel centres, on the lattice of the radar and lidar maps). ``model = voxel`` (issue 28): the
+``snap`` (the voxel centres, on the lattice of the radar and lidar maps). ``model = voxel``: the
 voxel U-Net (``voxel_net.py``) predicts the occupancy of every voxel of the radar map's lattice inside the
 trajectory band, thresholded at the checkpoint's validation threshold; it needs the recorded trajectory
 (``map_trajectory.parquet``: a map set's recorded one, or the one a log's radar map was built along).
 ``prefilter = band`` keeps only radar voxels inside the trajectory band (RMap's future work); ``auto``: on for
-the voxel model (trained so), off for UpPoinTr. ``models`` (issue 28 item 3) runs further models beside the
+the voxel model (trained so), off for UpPoinTr. ``models`` runs further models beside the
 configured one, each with its ``auto`` checkpoint, and writes their maps as ``completed_map_<model>.parquet``
 (``auto``: every model on map sequences ``rmap_*``, only the configured one elsewhere); with a recorded trajectory
 the stage also writes the band-filtered radar map (``radar_map_band.parquet``) for the evaluate stage's
@@ -70,7 +70,7 @@ class CompleteParams(StageParams):
     """Parameters of the `complete` stage."""
 
     model: Model = Field("uppointr", description="uppointr = the paper's patch network; voxel = the per-voxel 3D "
-                         "U-Net on the map's lattice (issue 28); its map is completed_map.parquet")
+                         "U-Net on the map's lattice; its map is completed_map.parquet")
     models: list[Model] | Literal["auto"] = Field("auto", description="models run beside the configured one (each "
                                                   "with its auto checkpoint), their maps written as "
                                                   "completed_map_<model>.parquet for side-by-side tables; auto = "
@@ -308,7 +308,7 @@ class CompleteStage(Stage):
     def _run_voxel(self, ctx: StageContext, p: CompleteParams, ckpt: Path,
                    device: Any) -> tuple[F64, dict[str, Any]]:
         """The voxel model over the whole map (tiled, equal to one pass), thresholded (RMap Sec. III-D's task
-        posed per voxel, issue 28)."""
+        posed per voxel)."""
         from stages.complete.voxel_checkpoint import load_voxel_checkpoint
         from stages.complete.voxel_grid import LatticeError, key_centres, lattice_keys
         from stages.complete.voxel_net import (
