@@ -93,7 +93,7 @@ def test_shipped_workflows_load_and_name_real_parameters() -> None:
 
 
 # Where the default workflow may differ from a stage's own defaults, and why. Everything else it states must be
-# the stage's default: the tables (stages.slam.table3, benchmarks) run the stage defaults, and `pipeline run all`
+# the stage's default: the tables (experiments.slam_table3, benchmarks) run the stage defaults, and `pipeline run all`
 # must run what they measured.
 INTENDED_WORKFLOW_DIFFERENCES: dict[tuple[str, str], str] = {}
 

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from experiments import slam_table3 as table3
 from stages.evaluate.rich_slam_paper import PAPER_METHODS, PAPER_SEQUENCES, TABLE_III, paper_sequence
-from stages.slam import table3
 
 PAPER = Path(__file__).resolve().parents[1].parent / "shared" / "papers" / "rich-slam.md"
 

@@ -167,8 +167,8 @@ def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
 
 
 def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """``python -m stages.slam.table3``: one row per (sequence, method, seed), finished rows skipped."""
-    from stages.slam import table3
+    """``python -m experiments.slam_table3``: one row per (sequence, method, seed), finished rows skipped."""
+    from experiments import slam_table3 as table3
 
     inp = _write_inputs(tmp_path / "seq_a", 25)
     gt = inp["run"].groundtruth

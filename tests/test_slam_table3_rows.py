@@ -1,4 +1,4 @@
-"""``python -m stages.slam.table3 --table A B``: rows of several results files in one table."""
+"""``python -m experiments.slam_table3 --table A B``: rows of several results files in one table."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from stages.slam import table3
+from experiments import slam_table3 as table3
 
 
 def _row(seq: str, method: str, seed: int, yaw: float, config: dict[str, object]) -> str:

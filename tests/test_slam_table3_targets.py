@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from stages.slam import table3
+from experiments import slam_table3 as table3
 
 
 def _row(seq: str, method: str, seed: int, pos: float, yaw: float) -> dict[str, object]:

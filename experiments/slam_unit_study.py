@@ -7,7 +7,7 @@ M = 256, and two properties of the prior: how many of the 256 basis functions ke
 largest prior variance, and the share of the SE kernel's variance sigma_f^2 that the truncated basis
 represents at the domain centre (eq. 5 vs eq. 3).
 
-    python -m stages.slam.unit_study RUN_DIR [RUN_DIR ...] [--units 1,0.5,0.2,0.1,0.05] [--out table.md]
+    python -m experiments.slam_unit_study RUN_DIR [RUN_DIR ...] [--units 1,0.5,0.2,0.1,0.05] [--out table.md]
 """
 
 from __future__ import annotations

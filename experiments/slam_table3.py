@@ -5,13 +5,13 @@ hours on a CPU, so this runner appends one JSON line per (sequence, method, seed
 finishes and skips the ones already there: stop it at any point and run the same command again.
 
     pipeline run odometry --seq SEQ ...                       # ingest, filter, odometry (and ground truth)
-    python -m stages.slam.table3 RUNS/SEQ [RUNS/SEQ ...] --methods odometry,fastslam_grid,rich_slam \\
+    python -m experiments.slam_table3 RUNS/SEQ [RUNS/SEQ ...] --methods odometry,fastslam_grid,rich_slam \\
         --seeds 0,1,2 --set n_particles=200 --out table3.jsonl
-    python -m stages.slam.table3 --table table3.jsonl         # the markdown tables: mean, spread, seeds
-    python -m stages.slam.table3 --table a.jsonl b.jsonl      # rows of several sessions in one table
-    python -m stages.slam.table3 --table table3.jsonl --figure table3.png   # and the figure (one panel a sequence)
-    python -m stages.slam.table3 --table table3.jsonl --paper               # the twins beside the paper's Table III
-    python -m stages.slam.table3 --table table3.jsonl --targets             # radar_graph's targets per sequence
+    python -m experiments.slam_table3 --table table3.jsonl         # the markdown tables: mean, spread, seeds
+    python -m experiments.slam_table3 --table a.jsonl b.jsonl      # rows of several sessions in one table
+    python -m experiments.slam_table3 --table table3.jsonl --figure table3.png   # and the figure (one panel a sequence)
+    python -m experiments.slam_table3 --table table3.jsonl --paper               # beside the paper's Table III
+    python -m experiments.slam_table3 --table table3.jsonl --targets             # radar_graph's targets per sequence
 
 Errors are position RMSE [m] / yaw RMSE [deg] after an SE(2) alignment (the evaluate stage's
 ``evaluate_trajectory``), two ways, both in every row: on the whole trajectory (``pos_rmse_whole_m``,
@@ -36,6 +36,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from experiments.slam_unit_study import read_run_folder
 from stages.evaluate.rich_slam_paper import (
     COUNTERPART,
     PAPER_METHODS,
@@ -49,7 +50,6 @@ from stages.slam.beam_sampling import BeamSamples
 from stages.slam.methods import GRAPH_METHODS, METHODS, MethodResult, domain_from_trajectory, run_method
 from stages.slam.pose_graph import optimise_graph
 from stages.slam.stage import SlamParams, beam_samples_by_scan, graph_endpoints_by_scan, read_odometry_file
-from stages.slam.unit_study import read_run_folder
 
 F64 = npt.NDArray[np.floating[Any]]
 
@@ -484,8 +484,8 @@ def main(argv: list[str] | None = None) -> int:
             code = main([x for x in (argv if argv is not None else sys.argv[1:]) if x not in ("--write", str(a.write))])
         if code == 0:
             args = " ".join(shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))
-            write_text_atomic(a.write, f"<!-- written by `python -m stages.slam.table3 {args}`; do not edit -->\n\n"
-                              + buf.getvalue())
+            head = f"<!-- written by `python -m experiments.slam_table3 {args}`; do not edit -->\n\n"
+            write_text_atomic(a.write, head + buf.getvalue())
             print(f"wrote {a.write}")
         else:
             sys.stdout.write(buf.getvalue())
