@@ -442,6 +442,59 @@ def paper_marks(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, tuple[flo
     return out
 
 
+def tabulate(a: argparse.Namespace) -> int:
+    """``--table``: print the tables (and draw the figure) of the results files ``a.table``; the exit code."""
+    try:
+        rows, notes = read_rows(a.table, by_config=a.by_config)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for n in notes:
+        print(f"note: {n}", file=sys.stderr)
+    if a.labels:
+        keep = [lab.strip() for lab in a.labels.split(";") if lab.strip()]
+        have = {r["method"] for r in rows}
+        missing = [lab for lab in keep if lab not in have]
+        if missing:
+            print(f"error: --labels: no row is labelled {missing[0]!r}; the rows have {', '.join(sorted(have))}",
+                  file=sys.stderr)
+            return 2
+        rows = [r for r in rows if r["method"] in keep]
+    has_whole = any(KEYS["whole"][0] in r for r in rows)
+    if has_whole:  # the headline first
+        print(f"{TITLES['whole']}:\n\n{table(rows, alignment='whole')}\n")
+    print(f"{TITLES['paper']}:\n\n{table(rows)}")
+    if a.anchored:
+        print(f"\n{TITLES['anchored']}:\n")
+        print(table(rows, anchored=True) if any("pos_rmse_anchored_m" in r for r in rows)
+              else "(no row has errors without alignment)")
+    if a.paper:
+        print("\n" + (paper_table(rows) or "(no sequence of the paper's Table III in these rows)"))
+    if a.targets:
+        method, _, other = a.targets.partition(";")
+        if not has_whole or method.strip() not in {r["method"] for r in rows}:
+            print(f"error: --targets: no row of {method.strip()!r} with the whole-trajectory errors",
+                  file=sys.stderr)
+            return 2
+        print(f"\nTargets, {method.strip()} (whole-trajectory alignment; mean ± half range over "
+              f"seeds):\n\n{targets(rows, method.strip(), other.strip() or 'rich_slam')[0]}")
+    if a.figure:
+        from stages.evaluate.figures import plot_table3
+
+        drawn: Alignment = "whole" if a.alignment == "whole" and has_whole else "paper"
+        if drawn != a.alignment:
+            print("(no row has the whole-trajectory errors: the figure draws the paper's protocol)")
+        tmp = a.figure.with_name(a.figure.name + ".tmp.png")
+        marks = "; black line: the paper's value, its protocol" if a.paper else ""
+        title = (f"Table III, {TITLES[drawn][0].lower()}{TITLES[drawn][1:]}: yaw RMSE (bar: mean over seeds, "
+                 f"dots: seeds; text: position RMSE{marks})")
+        plot_table3(tmp, by_sequence(rows, alignment=drawn), paper=paper_marks(rows) if a.paper else None,
+                    title=title)
+        os.replace(tmp, a.figure)
+        print(f"wrote {a.figure}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("runs", nargs="*", type=Path, help="run folders <runs>/<seq> with ingest/, filter/, odometry/")
@@ -481,7 +534,7 @@ def main(argv: list[str] | None = None) -> int:
 
         buf = io.StringIO()
         with contextlib.redirect_stdout(buf):
-            code = main([x for x in (argv if argv is not None else sys.argv[1:]) if x not in ("--write", str(a.write))])
+            code = tabulate(a)
         if code == 0:
             args = " ".join(shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))
             head = f"<!-- written by `python -m experiments.slam_table3 {args}`; do not edit -->\n\n"
@@ -491,55 +544,7 @@ def main(argv: list[str] | None = None) -> int:
             sys.stdout.write(buf.getvalue())
         return code
     if a.table:
-        try:
-            rows, notes = read_rows(a.table, by_config=a.by_config)
-        except ValueError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-        for n in notes:
-            print(f"note: {n}", file=sys.stderr)
-        if a.labels:
-            keep = [lab.strip() for lab in a.labels.split(";") if lab.strip()]
-            have = {r["method"] for r in rows}
-            missing = [lab for lab in keep if lab not in have]
-            if missing:
-                print(f"error: --labels: no row is labelled {missing[0]!r}; the rows have {', '.join(sorted(have))}",
-                      file=sys.stderr)
-                return 2
-            rows = [r for r in rows if r["method"] in keep]
-        has_whole = any(KEYS["whole"][0] in r for r in rows)
-        if has_whole:  # the headline first
-            print(f"{TITLES['whole']}:\n\n{table(rows, alignment='whole')}\n")
-        print(f"{TITLES['paper']}:\n\n{table(rows)}")
-        if a.anchored:
-            print(f"\n{TITLES['anchored']}:\n")
-            print(table(rows, anchored=True) if any("pos_rmse_anchored_m" in r for r in rows)
-                  else "(no row has errors without alignment)")
-        if a.paper:
-            print("\n" + (paper_table(rows) or "(no sequence of the paper's Table III in these rows)"))
-        if a.targets:
-            method, _, other = a.targets.partition(";")
-            if not has_whole or method.strip() not in {r["method"] for r in rows}:
-                print(f"error: --targets: no row of {method.strip()!r} with the whole-trajectory errors",
-                      file=sys.stderr)
-                return 2
-            print(f"\nTargets, {method.strip()} (whole-trajectory alignment; mean ± half range over "
-                  f"seeds):\n\n{targets(rows, method.strip(), other.strip() or 'rich_slam')[0]}")
-        if a.figure:
-            from stages.evaluate.figures import plot_table3
-
-            drawn: Alignment = "whole" if a.alignment == "whole" and has_whole else "paper"
-            if drawn != a.alignment:
-                print("(no row has the whole-trajectory errors: the figure draws the paper's protocol)")
-            tmp = a.figure.with_name(a.figure.name + ".tmp.png")
-            marks = "; black line: the paper's value, its protocol" if a.paper else ""
-            title = (f"Table III, {TITLES[drawn][0].lower()}{TITLES[drawn][1:]}: yaw RMSE (bar: mean over seeds, "
-                     f"dots: seeds; text: position RMSE{marks})")
-            plot_table3(tmp, by_sequence(rows, alignment=drawn), paper=paper_marks(rows) if a.paper else None,
-                        title=title)
-            os.replace(tmp, a.figure)
-            print(f"wrote {a.figure}")
-        return 0
+        return tabulate(a)
     try:
         overrides = slam_overrides(a.set)
     except ValueError as exc:

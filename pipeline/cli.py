@@ -44,8 +44,9 @@ app = typer.Typer(
 console = Console(stderr=True)
 out = Console()
 
-SeqOpt = Annotated[list[str], typer.Option(
+SeqOpt = Annotated[list[str] | None, typer.Option(
     "--seq", "-s", help="sequence name, list (a,b) or glob ('coloradar_*'); repeat it for more")]
+OneSeqOpt = Annotated[list[str] | None, typer.Option("--seq", "-s", help="one sequence name")]
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override a parameter: STAGE.PARAM=VALUE")]
 RunsOpt = Annotated[Path | None, typer.Option("--runs-dir", help="run store (default ./runs or $RADAR_PIPELINE_RUNS)")]
 WorkflowOpt = Annotated[str, typer.Option("--workflow", "-w", help="workflow in workflows/ (or a .toml path)")]
@@ -218,8 +219,7 @@ def _comparison_table() -> Any:
 
 @app.command()
 def status(
-    seq: Annotated[list[str] | None, typer.Option(
-        "--seq", "-s", help="sequence name, list (a,b) or glob ('coloradar_*'); repeat it for more")] = None,
+    seq: SeqOpt = None,
     set_: SetOpt = None,
     runs_dir: RunsOpt = None,
     workflow: WorkflowOpt = "default",
@@ -293,7 +293,7 @@ def brief(text: str) -> str:
 @app.command()
 def view(
     stages: Annotated[list[str] | None, typer.Argument(help="stages to open (default: all present)")] = None,
-    seqs: Annotated[list[str] | None, typer.Option("--seq", "-s", help="one sequence name")] = None,
+    seqs: OneSeqOpt = None,
     runs_dir: RunsOpt = None,
     source: SourceOpt = None,
     dataset: DatasetOpt = "coloradar",
@@ -319,7 +319,7 @@ def view(
 @app.command()
 def export(
     fmt: Annotated[str, typer.Option("--format", "-f", help="tum | ply | mcap")],
-    seqs: Annotated[list[str] | None, typer.Option("--seq", "-s", help="one sequence name")] = None,
+    seqs: OneSeqOpt = None,
     out_dir: Annotated[Path | None, typer.Option("--out", help="output folder (default runs/<seq>/export)")] = None,
     runs_dir: RunsOpt = None,
     groundtruth_stamps: Annotated[str, typer.Option(

@@ -33,7 +33,7 @@ from rich.markup import escape
 from pipeline import __version__
 from pipeline.config import Overrides, Workflow, build_params, check_param_names
 from pipeline.errors import UserError
-from pipeline.resources import folder_size, free_space, human_bytes, is_disk_full
+from pipeline.resources import available_memory, folder_size, free_space, human_bytes, is_disk_full
 from pipeline.sequences import SequenceInfo
 from pipeline.stage import Stage, StageContext, StageParams
 from pipeline.store import RunStore, compute_key
@@ -259,7 +259,7 @@ class Runner:
             return StageStatus(name, "missing", "never run" if not self.store.stage_dir(name).exists()
                                else "incomplete result", key)
         timing = manifest.get("timings", {})
-        damage = self.store.damage(name)
+        damage = self.store.damage(name, manifest=manifest)
         if damage is not None:
             return StageStatus(name, "damaged", damage, key, timing.get("seconds"), timing.get("finished_at"))
         if manifest.get("key") == key:
@@ -422,8 +422,6 @@ class Runner:
 
     def check_memory(self, name: str) -> None:
         """Refuse, before it starts, a stage whose modelled peak memory exceeds what the machine has free."""
-        from pipeline.resources import available_memory
-
         stage = self.registry[name]
         dirs = {i: self.store.stage_dir(i) for i in self.inputs_of(name)}
         estimate = stage.memory_estimate(self.seq, self.params(name), dirs)

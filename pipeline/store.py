@@ -76,10 +76,11 @@ class RunStore:
     def manifest_path(self, stage: str) -> Path:
         return self.stage_dir(stage) / MANIFEST
 
-    def damage(self, stage: str, checksums: bool = False) -> str | None:
+    def damage(self, stage: str, checksums: bool = False, manifest: dict[str, Any] | None = None) -> str | None:
         """What is wrong with the finished result's files (one line), or None: each artifact the manifest lists
-        must have its recorded size and, with ``checksums``, its recorded sha256."""
-        manifest = self.read_manifest(stage)
+        must have its recorded size and, with ``checksums``, its recorded sha256 (``manifest``: the stage's,
+        when the caller has read it already)."""
+        manifest = manifest if manifest is not None else self.read_manifest(stage)
         if manifest is None:
             return None
         for name, rec in manifest.get("artifacts", {}).items():

@@ -16,7 +16,7 @@ pose is its odometry pose moved by the correction of its two keyframes, interpol
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -255,7 +255,9 @@ def odometry_bias_factor(e: Edge) -> Any:
     return gtsam.CustomFactor(gtsam.noiseModel.Gaussian.Covariance(e.cov), [e.i, e.j, bkey], evaluate)
 
 
-def _loop_factor(e: Edge, weight: float = 1.0) -> Any:
+def _between_factor(e: Edge, weight: float = 1.0) -> Any:
+    """GTSAM's relative-pose factor of ``e`` (a loop closure, or an odometry edge without an interval), its
+    covariance divided by ``weight`` (GNC's)."""
     gtsam = import_gtsam()
     return gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.z), gtsam.noiseModel.Gaussian.Covariance(e.cov / weight))
 
@@ -270,9 +272,9 @@ def gnc_weights(graph: Any, values: Any, loops: list[Edge], cbar2: float = 11.34
     lm = gtsam.LevenbergMarquardtParams()
     full = gtsam.NonlinearFactorGraph(graph)
     for e in loops:
-        full.add(_loop_factor(e))
+        full.add(_between_factor(e))
     values = gtsam.LevenbergMarquardtOptimizer(full, values, lm).optimize()
-    r2 = np.array([2.0 * _loop_factor(e).error(values) for e in loops])
+    r2 = np.array([2.0 * _between_factor(e).error(values) for e in loops])
     w = np.ones(len(loops))
     if r2.max() <= cbar2:
         return values, w
@@ -281,9 +283,9 @@ def gnc_weights(graph: Any, values: Any, loops: list[Edge], cbar2: float = 11.34
         weighted = gtsam.NonlinearFactorGraph(graph)
         for e, wi in zip(loops, w, strict=True):
             if wi > 1e-6:
-                weighted.add(_loop_factor(e, wi))
+                weighted.add(_between_factor(e, wi))
         values = gtsam.LevenbergMarquardtOptimizer(weighted, values, lm).optimize()
-        r2 = np.array([2.0 * _loop_factor(e).error(values) for e in loops])
+        r2 = np.array([2.0 * _between_factor(e).error(values) for e in loops])
         lo, hi = mu / (mu + 1.0) * cbar2, (mu + 1.0) / mu * cbar2
         w_new = np.where(r2 <= lo, 1.0, np.where(r2 >= hi, 0.0, np.sqrt(cbar2 * mu * (mu + 1.0) /
                                                                         np.maximum(r2, 1e-12)) - mu))
@@ -325,7 +327,7 @@ def optimise(initial: F64, edges: list[Edge], robust: Literal["gnc", "none"], bi
             if e.j == e.i + 1:
                 dts[e.j] = e.dt
         else:
-            graph.add(_loop_factor(e))  # a plain relative-pose factor
+            graph.add(_between_factor(e))
     for k in range(1, K if timed else 0):
         walk = gtsam.noiseModel.Isotropic.Sigma(1, max(bias_walk * np.sqrt(dts[k]), 1e-7))
         graph.add(gtsam.BetweenFactorVector(bias_key(k - 1), bias_key(k), np.zeros(1), walk))
@@ -339,7 +341,7 @@ def optimise(initial: F64, edges: list[Edge], robust: Literal["gnc", "none"], bi
     elif loops:
         full = gtsam.NonlinearFactorGraph(graph)
         for e in loops:
-            full.add(_loop_factor(e))
+            full.add(_between_factor(e))
         result = gtsam.LevenbergMarquardtOptimizer(full, values, lm).optimize()
     else:
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, lm).optimize()
@@ -348,7 +350,7 @@ def optimise(initial: F64, edges: list[Edge], robust: Literal["gnc", "none"], bi
     clean = gtsam.NonlinearFactorGraph(graph)  # the solution and marginals without the rejected closures
     for e, k in zip(edges, kept, strict=True):
         if e.kind == "loop" and k:
-            clean.add(_loop_factor(e))
+            clean.add(_between_factor(e))
     if loops and robust == "gnc":
         # with every closure rejected the initial values (the odometry, zero bias) may already satisfy every
         # remaining factor: then they are the solution, exactly, not the optimiser's approximation of it
@@ -400,7 +402,7 @@ def optimise_graph(odometry: F64, cov: F64, t_s: F64, endpoints: Sequence[F64], 
     loops = loop_closures(poses, clouds, model)
     edges = [*odo, *loops]
     opt, kcov, kept, bias = optimise(poses, edges, model.robust, model.bias_sigma0, model.bias_walk)
-    edges = [Edge(e.kind, e.i, e.j, e.z, e.cov, e.inliers, k, e.dt) for e, k in zip(edges, kept, strict=True)]
+    edges = [replace(e, accepted=k) for e, k in zip(edges, kept, strict=True)]
     rejected = sum(e.kind == "loop" and not e.accepted for e in edges)
     if rejected:
         warnings.append(f"the optimiser rejected {rejected} of {len(loops)} loop closures (inconsistent with the "

@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from pipeline.sequences import SequenceInfo
 
 from schemas.artifacts import ODOMETRY_COV_COLS, ODOMETRY_COV_IDX
-from schemas.io import read_artifact, write_artifact
+from schemas.io import SchemaError, read_artifact, write_artifact
 from stages.slam import hilbert_map as hm
 from stages.slam.backend import resolve_device
 from stages.slam.beam_sampling import BeamSamples, radar_to_body_2d, sample_beams, to_world
@@ -219,9 +219,9 @@ class SlamStage(Stage):
                         f"slam.n_particles={p.n_particles} Hilbert maps of slam.n_basis={M}^2 {p.dtype}"))
         if "fastslam_grid" in methods and "odometry" in input_dirs:
             try:
-                t = pq.read_table(input_dirs["odometry"] / "odometry.parquet", columns=["x", "y"])
+                t = read_artifact(input_dirs["odometry"] / "odometry.parquet", "odometry", columns=["x", "y"])
                 xy = np.column_stack([t["x"].to_numpy(), t["y"].to_numpy()])
-            except (OSError, KeyError, pa.ArrowInvalid):
+            except (OSError, SchemaError):  # not estimated: the stage itself then says what is wrong
                 xy = np.zeros((0, 2))
             if len(xy) and np.all(np.isfinite(xy)):
                 half, _ = domain_from_trajectory(xy, p.domain_padding)
