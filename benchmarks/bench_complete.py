@@ -9,7 +9,7 @@ the held-out map comparison of RMap Table III on a simulated sequence.
   as a ratio to a reference measured in the same run with the same torch threads: one float32
   2048 x 2048 matrix product (``torch.mm``), so that the ratio follows the model, not the machine's load;
 - full mode: `complete` on the held-out sequence(s) with the shipped checkpoint, input radar map and
-  completed map each scored against the lidar map (``stages.evaluate.map_metrics``).
+  completed map each scored against the lidar map (``core.map_metrics``).
 
 ``python -m benchmarks.bench_complete --heldout sim_hallway_loop [--runs-dir DIR] [--cached-only]`` prints
 only the held-out comparison (as a markdown table).
@@ -29,7 +29,7 @@ import numpy as np
 from benchmarks.common import Result, best_time
 
 AREA = "complete"
-#: torch threads of the 18-scene voxel inference (issue 28's target: 2 CPU cores)
+#: torch threads of the 18-scene voxel inference (the target runs on 2 CPU cores)
 INFERENCE_THREADS = 2
 HELDOUT = ("sim_hallway_loop",)
 
@@ -104,7 +104,7 @@ def _inference_results(quick: bool) -> list[Result]:
 
 
 def _voxel_results(quick: bool) -> list[Result]:
-    """The voxel model (issue 28): one tile's forward pass in Mvoxel/s and, in full mode with the shared map set
+    """The voxel model: one tile's forward pass in Mvoxel/s and, in full mode with the shared map set
     present, the whole-map inference of the 18 present Table III test scenes on :data:`INFERENCE_THREADS`
     threads (target: < 56 s, the paper's GPU time for 1262 patches; the note gives the ratio to it), each as a
     ratio to a same-run ``torch.mm`` reference (for the scenes: at the same threads, before and after)."""
@@ -143,7 +143,7 @@ def _voxel_results(quick: bool) -> list[Result]:
     root = Path(os.environ.get("RMAP_ROOT", "../shared/data/coloradar_maps"))
     if not quick and path.exists() and (root / "index.json").is_file():
         from stages.complete.voxel_grid import Band
-        from stages.complete.voxel_table3 import PAPER_SECONDS, mm_gflops, output_row, run_table
+        from experiments.rmap_voxel_table3 import PAPER_SECONDS, mm_gflops, output_row, run_table
 
         threads = torch.get_num_threads()
         torch.set_num_threads(INFERENCE_THREADS)  # the target's 2 cores
@@ -173,8 +173,8 @@ def _run_complete_on_existing(store: Any, params: dict[str, Any], out_dir: Path)
     """The `complete` stage on a run store's finished `patches` and `voxel` folders, without the runner."""
     from rich.console import Console
 
+    from core.stage import StageContext
     from pipeline.sequences import get_sequence
-    from pipeline.stage import StageContext
     from stages.complete.stage import STAGE
 
     for stage in ("patches", "voxel"):
@@ -203,14 +203,14 @@ def heldout_comparison(seqs: tuple[str, ...] = HELDOUT, runs_dir: Path | None = 
 
     from rich.console import Console
 
+    from core.map_metrics import map_metrics
+    from core.paths import default_runs_dir
     from pipeline.config import load_workflow
-    from pipeline.paths import default_runs_dir
     from pipeline.registry import load_stages
     from pipeline.runner import Runner
     from pipeline.sequences import get_sequence
     from pipeline.store import RunStore
     from schemas import read_artifact
-    from stages.evaluate.map_metrics import map_metrics
 
     def cloud(path: Path, schema: str) -> np.ndarray:
         t = read_artifact(path, schema, columns=["x", "y", "z"])

@@ -105,8 +105,8 @@ def _reference(bag: Path, topics: set[str]) -> tuple[int, int]:
 def _ingest(bag: Path, out: Path) -> dict[str, Any]:
     from rich.console import Console
 
+    from core.stage import StageContext
     from pipeline.sequences import SequenceInfo
-    from pipeline.stage import StageContext
     from stages.ingest.stage import STAGE, IngestParams
 
     shutil.rmtree(out, ignore_errors=True)

@@ -1,4 +1,4 @@
-"""Radar-only workflow against the default one on the demo (issue 29 target: within 1.3x of `make demo`).
+"""Radar-only workflow against the default one on the demo (target: within 1.3x of `make demo`).
 
 Both run every stage from an empty run store on the same simulated log (simulated once into a temporary
 data cache first, so neither pays for the simulation): ``pipeline run all --seq demo`` (what ``make demo``

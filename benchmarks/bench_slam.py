@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.common import Result, best_time
-from stages.slam import hilbert_map as hm
+from core import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, sample_beams
 from stages.slam.methods import SlamConfig, choose_form, make_hilbert_maps, step_flops
 from stages.slam.parallel import ParallelHilbertMaps

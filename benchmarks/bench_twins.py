@@ -1,4 +1,4 @@
-"""ColoRadar twins: simulation time per second of log in a real voxel map (issue 19's speed requirement).
+"""ColoRadar twins: simulation time per second of log in a real voxel map.
 
 - ``coloradar_6_twin`` (edgar_classroom_run3, the largest twin: 275 s, 301 m, 326 k map voxels): the whole
   log written as a ColoRadar bag (20 s with ``--quick``), wall seconds per second of log; the world build

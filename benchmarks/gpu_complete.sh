@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# For a session lent a GPU (none was lent when this was written): train the paper-size completion network on
+# On a machine with a GPU: train the paper-size completion network on
 # the real ColoRadar maps (RMap's train scenes, a_train = 16, validation scenes one per environment), then
 # time inference one patch at a time on the Table III test scenes at a_test = 4 against the paper's Table II/VI
 # (56 s for 1262 patches on an RTX 6000) and print Table III for it.
@@ -13,5 +13,5 @@ PY=${PY:-python}
 "$PY" -m pipeline train --maps "$MAPS" --size paper --device cuda --a-train 16 --a-val 4 --epochs 100 \
   --batch-size 16 --lr "${LR:-1e-5}" --lr-decay 0.9 --decay-every 20 --seed 0 --time-limit "$LIMIT" --half \
   --out "$OUT" ${RESUME:-}
-"$PY" -m stages.complete.map_table --maps "$MAPS" --checkpoint "$OUT" --scenes test --a 4 --device cuda \
+"$PY" -m experiments.rmap_uppointr_table --maps "$MAPS" --checkpoint "$OUT" --scenes test --a 4 --device cuda \
   --batch-size 1 --out "${OUT%.safetensors}_table3.md"

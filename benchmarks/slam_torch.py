@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from stages.slam import hilbert_map as hm
+from core import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, sample_beams
 from stages.slam.methods import SlamConfig, choose_form, step_flops
 from stages.slam.rbpf import odometry_increments

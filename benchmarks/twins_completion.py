@@ -1,4 +1,4 @@
-"""Does completion improve the simulated twins' radar maps? (issue 29), not part of ``make bench``.
+"""Does completion improve the simulated twins' radar maps? Not part of ``make bench``.
 
 For each twin run folder (``voxel/`` with ``radar_map``, ``lidar_map`` and ``map_trajectory``, and
 ``complete/completed_map`` of the default UpPoinTr completion; e.g. the ``trajectory=groundtruth`` point of
@@ -34,9 +34,9 @@ def _points(path: Path) -> np.ndarray:
 
 def score_twin(run: Path, model: Any, meta: Any) -> dict[str, dict[str, float]]:
     """Every map of one twin against its lidar map."""
+    from core.map_metrics import map_metrics
     from stages.complete.voxel_grid import key_centres, lattice_keys, trajectory_band
     from stages.complete.voxel_net import completed_keys, predict_tiles
-    from stages.evaluate.map_metrics import map_metrics
 
     radar, lidar = _points(run / "voxel" / "radar_map.parquet"), _points(run / "voxel" / "lidar_map.parquet")
     traj = _points(run / "voxel" / "map_trajectory.parquet")

@@ -1,4 +1,4 @@
-"""EKF-RIO drift on the (drifting) ColoRadar twins beside RICH-SLAM Table III's real RIO (issue 27, item 4).
+"""EKF-RIO drift on the (drifting) ColoRadar twins beside RICH-SLAM Table III's real RIO.
 
 Not part of ``make bench``. For each sequence named, after ``pipeline run ingest filter odometry --seq S``: the
 odometry stage's own drift against ground truth (``stats.drift`` of its manifest: the estimate anchored at

@@ -1,4 +1,4 @@
-"""What each real-radar effect of the drifting twins does to the radar map, on RMap *train* scenes (issue 27).
+"""What each real-radar effect of the drifting twins does to the radar map, on RMap *train* scenes.
 
 Not part of ``make bench``. For each train scene named, the radar-only twin of :mod:`benchmarks.twins_tune_radar`
 (walked at its ``WALK_SPEED``, seed 7, the map built as the voxel stage builds the twins') with the twins'

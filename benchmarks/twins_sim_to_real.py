@@ -1,4 +1,4 @@
-"""Sim-to-real check of the radar model on the ColoRadar twins (issue 19), not part of ``make bench``.
+"""Sim-to-real check of the radar model on the ColoRadar twins, not part of ``make bench``.
 
 For each twin named: its simulated radar OctoMap (the voxel stage's ``radar_map.parquet``, built along the
 twin's ground truth, after ``pipeline run voxel --seq <twin>``) and the authors' real radar map of the same
@@ -24,7 +24,7 @@ COLUMNS = ("n_radar", "lr_ratio", "ddist_p50", "ddist_p75", "ddist_p90", "ddist_
 
 
 def _row(radar: np.ndarray, lidar_f: np.ndarray) -> dict[str, float]:
-    from stages.evaluate.map_metrics import lr_ratio, map_metrics
+    from core.map_metrics import lr_ratio, map_metrics
 
     m = map_metrics(radar, lidar_f)
     return {"n_radar": float(len(radar)), "lr_ratio": lr_ratio(lidar_f, radar), **m}

@@ -1,10 +1,10 @@
-"""Tune the twins' radar model on RMap's *train* scenes (issue 19), not part of ``make bench``.
+"""Tune the twins' radar model on RMap's *train* scenes, not part of ``make bench``.
 
 For each train scene named, a twin (:func:`simulator.twin.twin_world`, the scene's ``lidar`` map, its recorded
 path) is simulated for its radar only and the radar OctoMap is built along the simulated ground truth the way
 the voxel stage builds it for the twins (``voxel.radar_prob_miss = 0.5``: every fan voxel holding a return is
 occupied; :func:`radar_map`), then measured against the scene's real ``lidar_filtered`` map beside the
-authors' real radar map: L/R, CD-l2, F@0.15, D-Dist p50 / p90 (:func:`stages.evaluate.map_metrics.map_metrics`).
+authors' real radar map: L/R, CD-l2, F@0.15, D-Dist p50 / p90 (:func:`core.map_metrics.map_metrics`).
 
 A train scene has no paper duration: it is walked at :data:`WALK_SPEED` (the median 2D speed of RICH-SLAM's six
 ColoRadar runs, path length over the paper's duration: 0.55, 1.05, 0.99, 1.10, 0.81, 1.10 m/s), optionally
@@ -114,7 +114,7 @@ def read_trials(paths: list[Path]) -> list[dict[str, Any]]:
 
 
 def _metrics(radar: np.ndarray, lidar_f: np.ndarray) -> dict[str, float]:
-    from stages.evaluate.map_metrics import lr_ratio, map_metrics
+    from core.map_metrics import lr_ratio, map_metrics
 
     m = map_metrics(radar, lidar_f)
     return {"n_radar": float(len(radar)), "lr_ratio": lr_ratio(lidar_f, radar), **m}

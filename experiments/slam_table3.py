@@ -8,7 +8,7 @@ finishes and skips the ones already there: stop it at any point and run the same
     python -m experiments.slam_table3 RUNS/SEQ [RUNS/SEQ ...] --methods odometry,fastslam_grid,rich_slam \\
         --seeds 0,1,2 --set n_particles=200 --out table3.jsonl
     python -m experiments.slam_table3 --table table3.jsonl         # the markdown tables: mean, spread, seeds
-    python -m experiments.slam_table3 --table a.jsonl b.jsonl      # rows of several sessions in one table
+    python -m experiments.slam_table3 --table a.jsonl b.jsonl      # rows of several runs in one table
     python -m experiments.slam_table3 --table table3.jsonl --figure table3.png   # and the figure (one panel a sequence)
     python -m experiments.slam_table3 --table table3.jsonl --paper               # beside the paper's Table III
     python -m experiments.slam_table3 --table table3.jsonl --targets             # radar_graph's targets per sequence
@@ -36,6 +36,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from core import hilbert_map as hm
 from experiments.slam_unit_study import read_run_folder
 from stages.evaluate.rich_slam_paper import (
     COUNTERPART,
@@ -45,7 +46,6 @@ from stages.evaluate.rich_slam_paper import (
     paper_sequence,
 )
 from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, evaluate_trajectory_whole, quat_to_yaw
-from stages.slam import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
 from stages.slam.methods import GRAPH_METHODS, METHODS, MethodResult, domain_from_trajectory, run_method
 from stages.slam.pose_graph import optimise_graph
@@ -354,7 +354,7 @@ def table(rows: Sequence[dict[str, Any]], methods: Sequence[str] = (), anchored:
     return "\n".join(lines)
 
 
-#: issue 27's targets: an odometry whose whole-trajectory yaw RMSE is below this (deg) must not be made worse
+#: the targets: an odometry whose whole-trajectory yaw RMSE is below this (deg) must not be made worse
 GOOD_ODOMETRY_DEG = 5.0
 #: and on a drifting sequence (its name ends so) the method's yaw RMSE must be this fraction of the odometry's or less
 DRIFT_FACTOR = 0.7

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from stages.slam import hilbert_map as hm
+from core import hilbert_map as hm
 
 F64 = npt.NDArray[np.float64]
 

@@ -16,9 +16,9 @@ from rich.markup import escape
 from rich.table import Table
 from typer.exceptions import TyperException
 
+from core.errors import UserError
+from core.paths import default_runs_dir
 from pipeline.config import describe_params, load_workflow, parse_set
-from pipeline.errors import UserError
-from pipeline.paths import default_runs_dir
 from pipeline.profile_cli import app as profile_app
 from pipeline.registry import STAGE_NAMES, load_stages
 from pipeline.runner import Runner, StageOutcome, StagesFailed
@@ -31,8 +31,8 @@ from schemas.io import SchemaError
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
+    from core.stage import Stage
     from pipeline.executors import TaskResult
-    from pipeline.stage import Stage
 
 app = typer.Typer(
     name="pipeline",
@@ -409,12 +409,13 @@ def report(
         console.print(f"[yellow]stale[/] {escape(seq)}: {escape(why)}; refresh with "
                       f"`pipeline run evaluate --seq {seq}`", soft_wrap=True, highlight=False)
     if out_file is not None:
+        command = rep.command_line(sys.argv[1:])
         try:
             if sweep is None:
-                written = rep.write_outputs(records, out_file, title, runs_dir=runs, stale=stale)
+                written = rep.write_outputs(records, out_file, title, runs_dir=runs, stale=stale, command=command)
                 written += rep.write_figures(runs, records, out_file)
             else:
-                written = rep.write_sweep_markdown(records, out_file, title)
+                written = rep.write_sweep_markdown(records, out_file, title, command=command)
         except OSError as exc:
             raise UserError(f"--out {out_file}: cannot write there ({exc.strerror or exc}); name a file in a "
                             f"folder you can write to") from None
@@ -472,7 +473,7 @@ def train(
 ) -> None:
     """Train the completion network (RMap Sec. III-D) on the patches of --seqs or a map set (--maps); writes a
     checkpoint, its curve and history every epoch."""
-    from stages.complete.train_cli import TrainRequest, run_training
+    from pipeline.train import TrainRequest, run_training
 
     seqs, test_seqs = seq_spec(seqs_), seq_spec(test_seqs_)
 

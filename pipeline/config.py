@@ -15,9 +15,9 @@ from typing import Any
 import tomllib
 from pydantic import ValidationError
 
-from pipeline.errors import UserError
-from pipeline.paths import workflows_dir
-from pipeline.stage import Stage, StageParams, bool_for_number
+from core.errors import UserError
+from core.paths import workflows_dir
+from core.stage import Stage, StageParams, bool_for_number
 
 Overrides = dict[str, dict[str, Any]]
 

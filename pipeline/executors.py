@@ -23,8 +23,8 @@ from typing import Any
 
 from rich.console import Console
 
+from core.errors import UserError
 from pipeline.config import Overrides, load_workflow
-from pipeline.errors import UserError
 from pipeline.runner import Runner, StageOutcome, StagesFailed
 from pipeline.sequences import SequenceInfo
 
@@ -205,7 +205,7 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"
 
 
 def _child(task: RunTask, conn: Any, threads: int = 0) -> None:
-    from pipeline.stage import blas_threads
+    from core.stage import blas_threads
 
     # Ctrl-C reaches the whole process group: the driver alone decides, and stops workers with SIGTERM
     signal.signal(signal.SIGINT, signal.SIG_IGN)

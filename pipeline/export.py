@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from pipeline.store import RunStore
 from schemas import artifact_for_file, read_artifact
 

@@ -16,8 +16,8 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from pipeline.errors import UserError
-from pipeline.paths import data_dir
+from core.errors import UserError
+from core.paths import data_dir
 from pipeline.store import write_text_atomic
 
 app = typer.Typer(name="profile", help="dataset profiles: topics, fields, frames and extrinsics of a rig",

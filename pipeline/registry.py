@@ -5,10 +5,10 @@ from __future__ import annotations
 import importlib
 from functools import cache
 
-from pipeline.errors import UserError
-from pipeline.stage import Stage, StageReport
+from core.errors import UserError
+from core.stage import Stage, StageReport
 
-#: The stages of DESIGN.md in dependency order.
+#: The stages in dependency order.
 STAGE_NAMES = ("ingest", "filter", "odometry", "slam", "voxel", "patches", "complete", "evaluate", "plan")
 
 
@@ -26,7 +26,7 @@ def load_stages() -> dict[str, Stage]:
 
 
 def stage_report(stage: str = "evaluate") -> StageReport:
-    """The report hook of ``stage`` (:meth:`pipeline.stage.Stage.report`): tables and figures over many runs."""
+    """The report hook of ``stage`` (:meth:`core.stage.Stage.report`): tables and figures over many runs."""
     rep = load_stages()[stage].report()
     if rep is None:
         raise UserError(f"stage '{stage}' has no report")

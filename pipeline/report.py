@@ -2,7 +2,7 @@
 
 Reads ``runs/<seq>/evaluate/metrics.parquet`` for every sequence asked for (:mod:`pipeline.results`) and
 hands the records to the evaluate stage's report (``load_stages()["evaluate"].report()``, a
-:class:`pipeline.stage.StageReport`, in ``stages/evaluate/report.py``), which builds the tables and
+:class:`core.stage.StageReport`, in ``stages/evaluate/report.py``), which builds the tables and
 figures: RICH-SLAM Table III, the occupancy AUC per method, the RMap map metrics and, for map
 sequences, the RMap paper's tables side by side. This module only gathers, prints and writes files.
 """
@@ -17,7 +17,7 @@ from typing import Any
 
 from rich.table import Table
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from pipeline.registry import stage_report
 from pipeline.results import METRICS_FILE, gather, metrics_path, read_records
 from pipeline.store import RunStore, write_text_atomic
@@ -150,10 +150,18 @@ def stale_rows(runs_dir: Path, seqs: Iterable[str], stage: str = "evaluate") -> 
     return out
 
 
+def command_line(argv: Sequence[str]) -> str:
+    """The first line of a written report: the command that regenerates it (a markdown comment)."""
+    import shlex
+
+    return f"<!-- written by `pipeline {shlex.join(argv)}`; regenerate rather than edit -->\n\n"
+
+
 def write_outputs(records: Sequence[dict[str, Any]], out: Path, title: str,
-                  runs_dir: Path | None = None, stale: Mapping[str, str] | None = None) -> list[Path]:
-    """``out`` (markdown, with a list of the stale rows under the title) and the combined long table beside it
-    (``<out>.parquet``), each written to a temporary name and renamed into place."""
+                  runs_dir: Path | None = None, stale: Mapping[str, str] | None = None,
+                  command: str = "") -> list[Path]:
+    """``out`` (markdown headed by ``command``, with a list of the stale rows under the title) and the combined
+    long table beside it (``<out>.parquet``), each written to a temporary name and renamed into place."""
     import numpy as np
 
     from schemas import write_artifact
@@ -166,7 +174,7 @@ def write_outputs(records: Sequence[dict[str, Any]], out: Path, title: str,
         head, _, rest = text.partition("\n")
         text = "\n".join([head, "", "Stale rows (computed from results that have been replaced since):", "", *lines,
                           "", rest.lstrip("\n")])
-    write_text_atomic(out, text)
+    write_text_atomic(out, command + text)
     cols: dict[str, Any] = {k: [r.get(k) for r in records] for k in ("seq", "method", "metric")}
     cols["value"] = np.array([r["value"] for r in records], np.float64)
     cols["features"] = np.array([int(r.get("features") or 0) for r in records], np.int32)
@@ -176,16 +184,17 @@ def write_outputs(records: Sequence[dict[str, Any]], out: Path, title: str,
     return [out, pq_path]
 
 
-def write_sweep_markdown(records: Sequence[dict[str, Any]], out: Path, title: str) -> list[Path]:
-    """``out``: the sweep's tables (one row per point, as printed) as markdown, not the pooled per-sequence
-    tables, which would mix the points."""
-    lines = [f"# {title}", ""]
+def write_sweep_markdown(records: Sequence[dict[str, Any]], out: Path, title: str,
+                         command: str = "") -> list[Path]:
+    """``out``: the sweep's tables (one row per point, as printed) as markdown headed by ``command``, not the
+    pooled per-sequence tables, which would mix the points."""
+    lines = [command + f"# {title}", ""]
     for name, headers, rows in sweep_tables(records):
         lines += [f"## {name}", "", "| " + " | ".join(headers) + " |", "|" + " --- |" * len(headers)]
         lines += ["| " + " | ".join(map(str, r)) + " |" for r in rows]
         lines.append("")
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines))
+    write_text_atomic(out, "\n".join(lines) + "\n")
     return [out]
 
 

@@ -30,12 +30,12 @@ from typing import Any
 from rich.console import Console
 from rich.markup import escape
 
+from core.errors import UserError
+from core.stage import Stage, StageContext, StageParams
 from pipeline import __version__
 from pipeline.config import Overrides, Workflow, build_params, check_param_names
-from pipeline.errors import UserError
 from pipeline.resources import available_memory, folder_size, free_space, human_bytes, is_disk_full
 from pipeline.sequences import SequenceInfo
-from pipeline.stage import Stage, StageContext, StageParams
 from pipeline.store import RunStore, compute_key
 from schemas.io import SchemaError
 

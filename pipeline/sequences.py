@@ -22,8 +22,8 @@ from typing import Any
 import tomllib
 
 import sources
-from pipeline.errors import UserError
-from pipeline.paths import data_dir
+from core.errors import UserError
+from core.paths import data_dir
 from sources import mapset, recorded, simulated
 
 KINDS = tuple(sources.PROVIDES)

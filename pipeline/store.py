@@ -23,7 +23,7 @@ from typing import Any
 
 from filelock import FileLock, Timeout
 
-from pipeline.errors import LockHeldError
+from core.errors import LockHeldError
 
 MANIFEST = "manifest.json"
 

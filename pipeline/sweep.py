@@ -28,8 +28,8 @@ from typing import Annotated, Any
 import typer
 from typer.exceptions import TyperException
 
+from core.errors import UserError
 from pipeline.config import Overrides, Workflow, check_param_names, load_workflow, merge_overrides
-from pipeline.errors import UserError
 
 SWEEPS_DIR = "sweeps"
 
@@ -273,9 +273,9 @@ def command(
     """Run every point of a sweep workflow, gather the metrics and draw the workflow's figure."""
     from rich.console import Console
 
+    from core.paths import default_runs_dir
     from pipeline.config import parse_set
     from pipeline.executors import make_executor
-    from pipeline.paths import default_runs_dir
     from pipeline.registry import load_stages
     from pipeline.sequences import expand_sequences, load_registry, seq_spec
 

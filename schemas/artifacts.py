@@ -1,4 +1,4 @@
-"""The artifact schemas of DESIGN.md, each with a version.
+"""The artifact schemas of the pipeline, each with a version.
 
 A schema lists the *required* columns and their types; artifacts may carry more columns. Bump
 ``version`` when a required column changes meaning or type; readers refuse files written under another

@@ -18,7 +18,7 @@ import uuid
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
-from pipeline.errors import UserError
+from core.errors import UserError
 
 if TYPE_CHECKING:
     from rich.console import Console

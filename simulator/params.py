@@ -9,7 +9,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from pipeline.errors import UserError
+from core.errors import UserError
 
 
 class _Params(BaseModel):
@@ -70,7 +70,7 @@ class RadarParams(_Params):
     tip_loss_db: float = Field(15.0, ge=0, description="loss of a line scatterer seen beyond its end (tip), dB")
     strong_rcs_spread_db: float = Field(3.0, ge=0, description="std of the once-drawn RCS of strong scatterers, dB")
     time_jitter: float = Field(0.001, ge=0, description="std of the scan period jitter, s")
-    # --- real-radar effects the physical model lacks in voxel worlds (issue 27; all off by default, so that
+    # --- real-radar effects the physical model lacks in voxel worlds (all off by default, so that
     # every existing log stays bit-identical; the drifting ColoRadar twins turn them on, simulator/twin.py) ---
     multipath_ghost_share: float = Field(0.0, ge=0, le=2, description="mean number of multipath ghosts per "
                                          "detected scene point (Poisson per scan): each is the mirror image "
@@ -86,7 +86,7 @@ class RadarParams(_Params):
                                        "spread beyond the model's phase noise)")
 
 
-#: the RadarParams fields of issue 27's real-radar effects (all off by default)
+#: the RadarParams fields of the real-radar effects (all off by default)
 REALISM_FIELDS = ("multipath_ghost_share", "multipath_ghost_loss_db", "doppler_outlier_share", "elevation_noise_deg")
 
 

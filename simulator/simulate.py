@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from simulator import imu as imu_model
 from simulator import lidar as lidar_model
 from simulator import radar as radar_model

@@ -24,8 +24,8 @@ import tomllib
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
-from pipeline.errors import UserError
-from pipeline.paths import data_dir
+from core.errors import UserError
+from core.paths import data_dir
 from simulator.params import ImuParams, RadarParams, make_params
 from simulator.path_trajectory import PathParams, PathTrajectory
 from simulator.sensor_errors import SensorErrors

@@ -21,8 +21,8 @@ import numpy as np
 import tomllib
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from pipeline.errors import UserError
-from pipeline.paths import data_dir
+from core.errors import UserError
+from core.paths import data_dir
 
 
 class Material(BaseModel):

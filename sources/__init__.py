@@ -8,9 +8,9 @@
 
 The sequence registry (:mod:`pipeline.sequences`) dispatches on the kind. Each kind *provides* data of
 one sort: ``log`` (sensor streams for ingest) or ``maps`` (voxel maps that enter the DAG at the voxel
-stage's outputs). Stages declare what they need (:attr:`pipeline.stage.Stage.needs`); the runner skips
+stage's outputs). Stages declare what they need (:attr:`core.stage.Stage.needs`); the runner skips
 those whose needs the source does not provide. This package imports nothing from the orchestration
-layer but :mod:`pipeline.errors` and :mod:`pipeline.paths`.
+layer but :mod:`core.errors` and :mod:`core.paths`.
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from sources.ply import read_ply_xyz
 
 ROOT_VAR = "RMAP_ROOT"

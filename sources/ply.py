@@ -21,7 +21,7 @@ from typing import BinaryIO
 import numpy as np
 import numpy.typing as npt
 
-from pipeline.errors import UserError
+from core.errors import UserError
 
 F64 = npt.NDArray[np.float64]
 #: the header comment our files carry instead of meshio's time-stamped one

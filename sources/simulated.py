@@ -13,8 +13,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import UserError
-from pipeline.paths import cache_dir, data_dir
+from core.errors import UserError
+from core.paths import cache_dir, data_dir
 from sources import mapset
 
 

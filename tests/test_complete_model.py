@@ -117,7 +117,7 @@ def test_checkpoint_half_precision(tmp_path: Path) -> None:
 
 
 def test_bad_checkpoint_is_user_error(tmp_path: Path) -> None:
-    from pipeline.errors import UserError
+    from core.errors import UserError
 
     with pytest.raises(UserError, match="not found"):
         load_checkpoint(tmp_path / "none.safetensors")

@@ -1,4 +1,4 @@
-"""Both completion models side by side (issue 28 item 3): ``complete.models`` writes every model's map, the
+"""Both completion models side by side: ``complete.models`` writes every model's map, the
 evaluate stage scores each as its own method, and those rows equal the single-model runs' ``completed_map``
 rows; the report's per-model Tables III, IV and VI carry them. A toy map on the 0.15 m lattice, a tiny
 UpPoinTr checkpoint and the shipped voxel checkpoint (``auto``)."""
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from rich.console import Console
 
+from core.stage import StageContext
 from pipeline.sequences import SequenceInfo
-from pipeline.stage import StageContext
 from schemas import read_artifact, write_artifact
 from stages.complete.synthetic import make_patches, patches_table
 

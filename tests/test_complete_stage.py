@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from pipeline.errors import UserError
-from pipeline.paths import PROJECT_ROOT
+from core.errors import UserError
+from core.paths import PROJECT_ROOT
+from core.stage import StageContext
 from pipeline.sequences import SequenceInfo
-from pipeline.stage import StageContext
 from schemas import read_artifact, write_artifact
 from stages.complete.data import (
     assemble_map,
@@ -186,7 +186,7 @@ def test_stage_identity_model_puts_patches_back_in_world(tmp_path: Path, monkeyp
 
 def test_stage_with_tiny_checkpoint(tmp_path: Path) -> None:
     torch = pytest.importorskip("torch")
-    from pipeline.recording import entity_paths_in
+    from core.recording import entity_paths_in
     from stages.complete.checkpoint import CheckpointMeta, save_checkpoint
     from stages.complete.model import ModelConfig, UpPoinTr
     from stages.complete.stage import STAGE, CompleteParams

@@ -17,7 +17,7 @@ pa = pytest.importorskip("pyarrow")
 import pyarrow.parquet as pq  # noqa: E402
 from rich.console import Console  # noqa: E402
 
-from pipeline.errors import UserError  # noqa: E402
+from core.errors import UserError  # noqa: E402
 from sources.mapset import read_index  # noqa: E402
 from stages.complete.maps import map_split, validation_scenes  # noqa: E402
 from stages.complete.model import SIZES, ModelConfig  # noqa: E402
@@ -121,8 +121,8 @@ def test_map_split_keeps_test_scenes_out(tmp_path: Path) -> None:
 def test_train_from_map_set(tmp_path: Path) -> None:
     from pipeline.config import load_workflow
     from pipeline.registry import load_stages
+    from pipeline.train import TrainRequest, run_training
     from stages.complete.checkpoint import load_checkpoint
-    from stages.complete.train_cli import TrainRequest, run_training
 
     maps = tmp_path / "maps"
     _write_map_set(maps)
@@ -183,10 +183,10 @@ def test_shipped_real_checkpoint_loads() -> None:
 
 
 def test_map_table_scores_input_and_completed(tmp_path: Path) -> None:
+    from core.map_metrics import map_metrics
     from stages.complete.checkpoint import CheckpointMeta, save_checkpoint
-    from stages.complete.map_table import evaluate_scenes, overall, render
+    from experiments.rmap_uppointr_table import evaluate_scenes, overall, render
     from stages.complete.model import UpPoinTr
-    from stages.evaluate.map_metrics import map_metrics
 
     maps = tmp_path / "maps"
     _write_map_set(maps)

@@ -1,4 +1,4 @@
-"""The `complete` stage with ``model = voxel`` (issue 28): output on the lattice inside the band, checkpoint
+"""The `complete` stage with ``model = voxel``: output on the lattice inside the band, checkpoint
 choice by model, and the bad inputs (wrong model kind, resolution, no voxels, maps off one lattice,
 no trajectory) as one-line errors with nothing written."""
 
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from pipeline.errors import UserError
+from core.errors import UserError
+from core.stage import StageContext
 from pipeline.sequences import SequenceInfo
-from pipeline.stage import StageContext
 from schemas import read_artifact, write_artifact
 
 torch = pytest.importorskip("torch")
@@ -163,7 +163,7 @@ def test_auto_checkpoint_by_kind_and_model() -> None:
 
 
 def test_shipped_voxel_checkpoint_loads_with_its_validation_choices() -> None:
-    from pipeline.paths import PROJECT_ROOT
+    from core.paths import PROJECT_ROOT
     from stages.complete.stage import VOXEL_CHECKPOINT
     from stages.complete.voxel_checkpoint import checkpoint_kind, load_voxel_checkpoint
 

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from core.errors import UserError
 from pipeline.config import load_workflow, parse_set, parse_value
-from pipeline.errors import UserError
 from pipeline.runner import Runner
 from pipeline.sequences import SequenceInfo
 from tests import toy_stages

@@ -1,4 +1,4 @@
-"""The sensor error model of the drifting twins (simulator.sensor_errors, issue 17 item 1).
+"""The sensor error model of the drifting twins (simulator.sensor_errors).
 
 Each error term is checked for its intended statistical effect on a synthetic IMU stream or a radar scan,
 deterministic from the seed; all-zero errors leave the measurements untouched; the `_drift` worlds are

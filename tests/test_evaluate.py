@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.recording import entity_paths_in
+from core.recording import entity_paths_in
 from pipeline.store import RunStore
 from schemas import read_artifact
 from stages.evaluate import baselines
@@ -311,7 +311,7 @@ def test_completed_map_is_scored_when_present(tmp_path: Path) -> None:
 
 
 def test_missing_ground_truth_is_a_user_error(tmp_path: Path) -> None:
-    from pipeline.errors import UserError
+    from core.errors import UserError
 
     runs = tmp_path / "runs"
     write_synthetic_run(runs, duration=5.0, with_maps=False)

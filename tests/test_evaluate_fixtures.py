@@ -16,8 +16,8 @@ import numpy as np
 import numpy.typing as npt
 from rich.console import Console
 
+from core.stage import StageContext, StageParams
 from pipeline.sequences import SequenceInfo
-from pipeline.stage import StageContext, StageParams
 from pipeline.store import MANIFEST, write_json_atomic
 from schemas import write_artifact
 from stages.odometry.stage import cov_columns
@@ -203,7 +203,7 @@ def _map_cols(p: F64) -> dict:
 
 def _slam_map(truth: F64) -> dict:
     """A Hilbert-GP posterior with the slam stage's metadata (trained from the room's walls, GT poses)."""
-    from stages.slam import hilbert_map as hm
+    from core import hilbert_map as hm
 
     L, c, M, ell, sf, sn = (10.0, 7.0), (0.0, 0.0), 256, 1.5, 4.0, 0.36
     basis = hm.make_basis(L, c, M)

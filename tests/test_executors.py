@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from pipeline.executors import Executor, LocalExecutor, RunTask, make_executor, run_all
 from pipeline.sequences import SequenceInfo
 from schemas import read_artifact

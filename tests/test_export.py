@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from pipeline.export import export
 from pipeline.store import RunStore
 from schemas import write_artifact
@@ -109,7 +109,7 @@ def test_each_trajectory_written_once(tmp_path: Path) -> None:
 
 
 def test_slam_poses_take_the_odometrys_z_roll_and_pitch(tmp_path: Path) -> None:
-    """A slam method estimates x, y, yaw; the exported 3D pose takes z, roll, pitch of its odometry (issue 29)."""
+    """A slam method estimates x, y, yaw; the exported 3D pose takes z, roll, pitch of its odometry."""
     from scipy.spatial.transform import Rotation
 
     _, notes = run_export(write_run(tmp_path / "a", odo_z=True, slam=True), "tum", tmp_path / "a" / "out")

@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 from pydantic import Field, ValidationError
 
+from core.errors import UserError
+from core.stage import Stage, StageContext, StageParams
 from pipeline.config import build_params, parse_set
-from pipeline.errors import UserError
 from pipeline.registry import load_stages
 from pipeline.runner import Runner, StagesFailed
 from pipeline.sequences import SequenceInfo
-from pipeline.stage import Stage, StageContext, StageParams
 from pipeline.store import RunStore
 from simulator import log_faults, rig
 from tests import toy_stages

@@ -9,8 +9,8 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
+from core.recording import entity_paths_in
 from pipeline.config import Workflow
-from pipeline.recording import entity_paths_in
 from pipeline.registry import load_stages
 from pipeline.runner import Runner
 from pipeline.sequences import SequenceInfo

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.ingest.geometry import pose_matrix
+from core.geometry import pose_matrix
 from tests.test_ingest_logs import BASE_FROM_IMU, BASE_FROM_RADAR, T0, Scene
 
 G = 9.81

@@ -16,13 +16,13 @@ import pyarrow.parquet as pq
 import pytest
 from typer.testing import CliRunner
 
+from core.errors import UserError
+from core.geometry import pose_matrix
 from pipeline.config import Workflow
-from pipeline.errors import UserError
 from pipeline.registry import load_stages
 from pipeline.runner import Runner
 from pipeline.sequences import SequenceInfo, load_registry
 from schemas.io import read_artifact
-from stages.ingest.geometry import pose_matrix
 from tests.test_ingest import run_unwrapped
 
 simulator = pytest.importorskip("simulator")

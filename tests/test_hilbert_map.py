@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from stages.slam import hilbert_map as hm
+from core import hilbert_map as hm
 from stages.slam.gp_reference import gp_posterior, se_kernel
 
 

@@ -11,14 +11,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from core.errors import UserError
+from core.geometry import pose_matrix
+from core.recording import entity_paths_in
 from pipeline.config import Workflow
-from pipeline.errors import UserError
-from pipeline.recording import entity_paths_in
 from pipeline.registry import load_stages
 from pipeline.runner import Runner
 from pipeline.sequences import SequenceInfo
 from schemas.io import ArtifactWriter, read_artifact
-from stages.ingest.geometry import pose_matrix
 from tests.test_ingest_logs import (
     BASE_FROM_IMU,
     BASE_FROM_OS1,
@@ -273,7 +273,7 @@ def _peak_ingest_memory(tmp_path: Path, n_lidar: int) -> float:
 
     from rich.console import Console
 
-    from pipeline.stage import StageContext
+    from core.stage import StageContext
     from stages.ingest.stage import STAGE, IngestParams
 
     sc = make_scene(n_radar=4, n_lidar=1, n_imu=10, n_gt=3)

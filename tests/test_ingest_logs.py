@@ -212,7 +212,7 @@ def write_folder(path: Path, sc: Scene) -> Path:
     np.savetxt(path / "imu/imu_data.txt", sc.imu, fmt="%.17g")
     (path / "groundtruth/timestamps.txt").write_text(_stamps(sc.gt_t))
     np.savetxt(path / "groundtruth/groundtruth_poses.txt", sc.gt, fmt="%.17g")
-    from stages.ingest.geometry import matrices_to_poses, pose_matrix
+    from core.geometry import matrices_to_poses, pose_matrix
 
     lidar = pose_matrix(*BASE_FROM_OS1) @ pose_matrix(*OS1_FROM_LIDAR)
     lt = matrices_to_poses(lidar[None])[0]

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stages.evaluate import map_metrics as mm
+from core import map_metrics as mm
 
 
 def _brute(pred: np.ndarray, gt: np.ndarray) -> dict[str, object]:

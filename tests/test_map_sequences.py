@@ -19,8 +19,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from core.errors import UserError
 from pipeline.config import load_workflow
-from pipeline.errors import UserError
 from pipeline.registry import load_stages
 from pipeline.runner import Runner, StagesFailed
 from pipeline.sequences import SequenceInfo, load_registry, source_sequence
@@ -281,8 +281,8 @@ def test_cli_map_errors_exit_2_with_one_line(tmp_path: Path) -> None:
 
 def test_without_the_learn_extra_completion_is_named_not_dropped(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                                 capsys: pytest.CaptureFixture[str]) -> None:
-    """Issue 28: without torch, `run evaluate` on a map sequence used to run voxel, patches and evaluate, leave
-    the completion out and exit 0. Simulated by the import check saying torch is missing (torch stays)."""
+    """Without torch, `run evaluate` on a map sequence names the missing completion instead of leaving it out
+    and exiting 0. Simulated by the import check saying torch is missing (torch stays)."""
     from pipeline import cli
     from stages.complete.stage import CompleteStage
 

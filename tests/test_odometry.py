@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.errors import UserError
+from core.errors import UserError
+from core.geometry import pose_matrix, yaw_of
+from core.trajectory_metrics import drift, se2_compose_anchor
 from schemas.io import read_artifact
-from stages.ingest.geometry import pose_matrix, yaw_of
 from stages.odometry.ekf_rio import EkfConfig, gravity_aligned, run_ekf
-from stages.odometry.metrics import drift, se2_compose_anchor
 from tests.test_filter import run_stages
 from tests.test_filter_scene import base_pose, circle_run, write_circle_log
 from tests.test_ingest_logs import BASE_FROM_IMU, GT_TOPIC, T0
@@ -104,7 +104,7 @@ def test_odometry_stage_ekf_anchored_at_groundtruth(circle_log, tmp_path: Path) 
     x, y = odo["x"].to_numpy(), odo["y"].to_numpy()
     assert np.hypot(x[0] - pos[0, 0], y[0] - pos[0, 1]) < 1e-4  # anchored at (interpolated) ground truth
     assert np.abs(np.hypot(x - pos[:, 0], y - pos[:, 1])).max() < 0.3
-    # the 3D part (issue 29): the circle is flown level at the ground truth's height
+    # the 3D part: the circle is flown level at the ground truth's height
     z, roll, pitch = (odo[c].to_numpy() for c in ("z", "roll", "pitch"))
     gt = read_artifact(out / "ingest" / "groundtruth.parquet", "groundtruth")
     assert abs(z[0] - np.interp(scan_t[0], gt["t_ns"].to_numpy(), gt["z"].to_numpy())) < 1e-6  # z anchored too

@@ -1,4 +1,4 @@
-"""The odometry's increment covariance (issue 27, item 1): stochastic cloning in EKF-RIO, the SE(2) increment
+"""The odometry's increment covariance: stochastic cloning in EKF-RIO, the SE(2) increment
 covariance, its NEES on a synthetic run with a matched noise model (and on a mistuned filter told the actual noise),
 the v3 clone update's overconfidence, and the bag source's fallback."""
 
@@ -9,10 +9,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from core.geometry import pose_matrix, yaw_of
+from core.trajectory_metrics import increment_nees, se2_increments
 from schemas.io import read_artifact
-from stages.ingest.geometry import pose_matrix, yaw_of
 from stages.odometry.ekf_rio import EkfConfig, increment_covariance, run_ekf
-from stages.odometry.metrics import increment_nees, se2_increments
 from stages.odometry.stage import COV_COLS, bag_increment_covariance
 from tests.test_filter import run_stages
 from tests.test_filter_scene import base_pose, circle_run, write_circle_log
@@ -126,7 +126,7 @@ def test_bag_source_writes_the_parameter_covariance(tmp_path) -> None:
 
 
 def test_heading_window_nees_is_one_for_independent_errors_and_grows_with_a_bias() -> None:
-    from stages.odometry.metrics import heading_window_nees
+    from core.trajectory_metrics import heading_window_nees
 
     rng = np.random.default_rng(3)
     n, sd = 30001, 0.002
@@ -147,7 +147,7 @@ def test_heading_window_nees_is_one_for_independent_errors_and_grows_with_a_bias
 
 
 def test_distance_ratio_finds_a_speed_scale_and_ignores_a_standstill() -> None:
-    from stages.odometry.metrics import distance_ratio
+    from core.trajectory_metrics import distance_ratio
 
     rng = np.random.default_rng(4)
     t = np.arange(0.0, 120.0, 0.1)

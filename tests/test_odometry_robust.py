@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stages.ingest.geometry import pose_matrix
+from core.geometry import pose_matrix
 from stages.odometry.ekf_rio import (
     EkfConfig,
     EkfResult,

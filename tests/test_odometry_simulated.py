@@ -13,13 +13,13 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from core.geometry import pose_matrix, poses_to_matrices
+from core.trajectory_metrics import NEES_TOLERANCE
 from pipeline.config import Workflow
 from pipeline.registry import load_stages
 from pipeline.runner import Runner
 from pipeline.sequences import SequenceInfo
 from schemas.io import read_artifact
-from stages.ingest.geometry import pose_matrix, poses_to_matrices
-from stages.odometry.metrics import NEES_TOLERANCE
 from tests.test_ingest import run_unwrapped
 
 simulator = pytest.importorskip("simulator")
@@ -89,12 +89,12 @@ def test_simulated_sequence_end_to_end(simulated: dict[str, Path], tmp_path: Pat
     assert fstats["labels"]["true_kept"] > 0.8 and fstats["labels"]["clutter_rejected"] > 0.9
     ostats = json.loads((out / "odometry" / "manifest.json").read_text())["stats"]
     assert ostats["anchor"] == "groundtruth" and ostats["drift"]["drift_pct_of_distance"] < 3.0
-    # the increment covariance (issue 27): not overconfident on the simulator's errors (the NEES check;
+    # the increment covariance: not overconfident on the simulator's errors (the NEES check;
     # stages/odometry/README.md): 95 % of the normalised increment errors below chi-square(3)'s 95 % point
     nees = ostats["increment_nees"]
     assert nees["increments"] >= 100 and nees["share_below_chi2_95"] >= 0.95 and nees["mean"] <= 3.0 * NEES_TOLERANCE
     if fmt == "folder":  # the check's command on the same run: its speed scale (drift under 3 %) is near 1
-        from stages.odometry import nees as nees_cli
+        from experiments import odometry_nees as nees_cli
 
         rows = tmp_path / "nees.jsonl"
         assert nees_cli.main([str(out.parent), out.name, "--speed", "--json", str(rows)]) == 0

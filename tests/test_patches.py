@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.recording import entity_paths_in
+from core import fps_patches as fp
+from core.recording import entity_paths_in
 from schemas.io import read_artifact, write_artifact
-from stages.patches import fps_patches as fp
 from stages.patches.stage import STAGE, PatchesParams
 from tests.test_voxel_synthetic import make_context
 
@@ -138,7 +138,7 @@ def test_patches_stage_pads_small_maps(tmp_path: Path) -> None:
 
 
 def test_patches_stage_empty_map(tmp_path: Path) -> None:
-    from pipeline.errors import UserError
+    from core.errors import UserError
 
     _write_maps(tmp_path / "voxel", 0, 100)
     ctx = make_context("patches", PatchesParams(), {"voxel": tmp_path / "voxel"}, tmp_path / "patches")

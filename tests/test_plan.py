@@ -11,13 +11,13 @@ import pytest
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from pipeline.errors import UserError
-from pipeline.recording import entity_paths_in
+from core.errors import UserError
+from core.map_field import MapField, field_from_posterior, strategy_cost
+from core.recording import entity_paths_in
 from schemas import read_artifact
 from stages.plan.astar import SQRT2, astar, edge_cost
-from stages.plan.field import MapField, strategy_cost
 from stages.plan.refine import PlanProblem, refine, resample_polyline
-from stages.plan.stage import STAGE, PlanParams, field_from_posterior
+from stages.plan.stage import STAGE, PlanParams
 from tests.test_evaluate_fixtures import make_context, write_synthetic_run
 
 

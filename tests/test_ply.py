@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from sources.ply import COMMENT, ply_bytes, read_ply_xyz, write_ply
 
 ROOT = Path(__file__).resolve().parents[1]

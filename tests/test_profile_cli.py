@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 from typer.testing import CliRunner
 
+from core.errors import UserError
 from pipeline.cli import app
-from pipeline.errors import UserError
 from stages.ingest.profile import load_profile
 
 

@@ -1,4 +1,4 @@
-"""Radar-only maps (issue 29): the workflow on a short simulated log, its recording, and the sweep's table."""
+"""Radar-only maps: the workflow on a short simulated log, its recording, and the sweep's table."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.recording import entity_paths_in, recording_id
+from core.recording import entity_paths_in, recording_id
 from schemas import read_artifact
 from stages.evaluate.radar_only import radar_only_rows, radar_only_table, source_of
 from tests.test_cli_run import SEQ, SLAM, cli, run  # noqa: F401  (the module-scoped run fixture)
@@ -102,7 +102,7 @@ def test_map_vs_trajectory_axis_turns_logarithmic_when_one_map_is_far_off() -> N
     from stages.evaluate.radar_only import wide_span
 
     assert not wide_span([0.3, 0.5, 1.7, 5.9])  # the twins along odometry: a linear axis reads fine
-    assert wide_span([0.3, 0.5, 1.7, 33.5])  # one diverged trajectory (coloradar_6_twin, stop 40)
+    assert wide_span([0.3, 0.5, 1.7, 33.5])  # one diverged trajectory (coloradar_6_twin)
     assert not wide_span([]) and not wide_span([0.0, 2.0])
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.slam import hilbert_map as hm
+from core import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, sample_beams, stencil_offsets, to_world
 from stages.slam.rbpf import (
     RBPF,

@@ -213,7 +213,7 @@ def _click_context(argv: list[str]) -> Any:
 
 
 def check_parses(cmd: Command, commands: list[Command]) -> None:
-    """Raise (pipeline.errors.UserError, AssertionError) when ``cmd`` would not work."""
+    """Raise (core.errors.UserError, AssertionError) when ``cmd`` would not work."""
     from pipeline.config import build_params, load_workflow, parse_set
     from pipeline.profile_cli import available
     from pipeline.registry import load_stages
@@ -276,7 +276,7 @@ def test_readme_command_parses(cmd: Command) -> None:
 
 def test_a_broken_command_is_caught() -> None:
     """The checks can fail: a misspelt parameter, an unknown option, sequence, world or make target."""
-    from pipeline.errors import UserError
+    from core.errors import UserError
 
     broken = readme_commands("```bash\n"
                              "pipeline run slam --seq demo --set slam.n_particle=20\n"

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 from rerun.chunk import RrdReader
 
-from pipeline.recording import StageRecording, entity_paths_in, recording_id, scan_lengths
+from core.recording import StageRecording, entity_paths_in, recording_id, scan_lengths
 from pipeline.runner import Runner
 from pipeline.sequences import SequenceInfo
 from tests import toy_stages

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from pipeline.report import build_tables, comparison_table, gather, resolve_sequences, to_markdown, write_outputs
 from schemas import read_artifact, write_artifact
 

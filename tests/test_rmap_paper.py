@@ -18,9 +18,9 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from stages.evaluate import map_metrics as mm
-from stages.evaluate import rmap_paper as paper
-from stages.patches.fps_patches import n_seeds, statistical_outliers
+from core import map_metrics as mm
+from core import rmap_paper as paper
+from core.fps_patches import n_seeds, statistical_outliers
 
 MAPS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "coloradar_maps"
 N_RADAR = 2048  # radar points per patch (N_R)

@@ -1,4 +1,4 @@
-"""Table VI over several run stores (one per a_test): ``stages.evaluate.rmap_table_vi``."""
+"""Table VI over several run stores (one per a_test): ``experiments.rmap_table_vi``."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core import map_metrics as mm
 from schemas import write_artifact
-from stages.evaluate import map_metrics as mm
-from stages.evaluate.rmap_table_vi import main
+from experiments.rmap_table_vi import main
 
 
 def _store(root: Path, a: float, n_patches: int, shift: float) -> None:

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core import map_metrics as mm
+from core import rmap_paper as paper
 from schemas import write_artifact
 from sources.mapset import rebuilt_scenes
-from stages.evaluate import map_metrics as mm
-from stages.evaluate import rmap_paper as paper
 from stages.evaluate import rmap_tables as rt
 from stages.evaluate.rmap_figures import plot_top_views
 from stages.evaluate.rmap_results import (

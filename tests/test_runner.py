@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.errors import LockHeldError, UserError
+from core.errors import LockHeldError, UserError
 from pipeline.runner import Runner, StagesFailed
 from pipeline.sequences import SequenceInfo
 from pipeline.store import RunStore

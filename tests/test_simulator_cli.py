@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import tomllib
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from pipeline.sequences import SequenceInfo, load_registry
 
 ROOT = Path(__file__).resolve().parents[1]

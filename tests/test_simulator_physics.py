@@ -311,7 +311,7 @@ def test_ray_caster_agrees_with_sphere_tracing(name: str) -> None:
     got = hits.range[:, 0]
     assert np.array_equal(np.isfinite(got), np.isfinite(ref_t))
     fin = np.isfinite(got)
-    # sphere tracing stops 1e-6 short of the surface, i.e. 1e-6 / cos(incidence) along the ray
+    # sphere tracing halts 1e-6 short of the surface, i.e. 1e-6 / cos(incidence) along the ray
     cos_inc = hits.cos_incidence[fin, 0]
     assert np.all(np.abs(got[fin] - ref_t[fin]) < 1e-4 + 2e-6 / np.maximum(cos_inc, 1e-6))
     assert np.all((hits.cos_incidence[fin, 0] > 0) & (hits.cos_incidence[fin, 0] <= 1 + 1e-9))

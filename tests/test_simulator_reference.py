@@ -153,7 +153,7 @@ _CACHE: dict[tuple[str, float, int, str], Path] = {}
 
 def simulated(factory: Any, world: str = "hallway_loop", duration: float = 4.0, seed: int = 7,
               fmt: str = "bag") -> Path:
-    """A simulated log made once per test session (shared by the simulator test modules)."""
+    """A simulated log made once per test run (shared by the simulator test modules)."""
     from simulator import simulate_to
 
     key = (world, duration, seed, fmt)

@@ -11,13 +11,13 @@ import pyarrow.parquet as pq
 import pytest
 from rich.console import Console
 
-from pipeline.errors import UserError
-from pipeline.recording import entity_paths_in
+from core import hilbert_map as hm
+from core.errors import UserError
+from core.recording import entity_paths_in
+from core.stage import StageContext
 from pipeline.sequences import SequenceInfo
-from pipeline.stage import StageContext
 from schemas.io import read_artifact, write_artifact
 from stages.odometry.stage import cov_columns
-from stages.slam import hilbert_map as hm
 from stages.slam.stage import STAGE, SlamParams
 from stages.slam.synthetic import make_run, ray_cast
 

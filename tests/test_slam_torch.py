@@ -17,8 +17,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from pipeline.errors import UserError  # noqa: E402
-from stages.slam import hilbert_map as hm  # noqa: E402
+from core import hilbert_map as hm  # noqa: E402
+from core.errors import UserError  # noqa: E402
 from stages.slam.backend import resolve_device  # noqa: E402
 from stages.slam.beam_sampling import sample_beams  # noqa: E402
 from stages.slam.rbpf import (  # noqa: E402

@@ -1,7 +1,7 @@
 """Stages that cannot run for a sequence are skipped with a one-line reason, with everything that needs them.
 
 Toy stages exercise the runner's rules (static needs, data-dependent reasons, optional inputs, named targets,
-status); one end-to-end run checks issue 16's case: a radar + IMU log (no lidar, no ground truth) runs
+status); one end-to-end run checks the case of a radar + IMU log (no lidar, no ground truth) runs
 ``run all`` to exit 0 and names what was skipped and why.
 """
 
@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 import pytest
 
+from core.errors import UserError
+from core.stage import Stage, StageContext, StageParams, parquet_rows
 from pipeline.config import Workflow
-from pipeline.errors import UserError
 from pipeline.runner import Runner
 from pipeline.sequences import SequenceInfo
-from pipeline.stage import Stage, StageContext, StageParams, parquet_rows
 from schemas import write_artifact
 from tests.toy_stages import NUMBERS
 
@@ -142,7 +142,7 @@ def _drop_topics(src: Path, dst: Path, keep: tuple[str, ...]) -> None:
 
 
 def test_radar_imu_only_log_runs_all_to_exit_0(tmp_path: Path) -> None:
-    """Issue 16 item 5: a log with radar and IMU only; stages needing lidar or ground truth are skipped."""
+    """A log with radar and IMU only; stages needing lidar or ground truth are skipped."""
     env = {**os.environ, "COLUMNS": "250"}
 
     def cli(*args: str) -> subprocess.CompletedProcess[str]:

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from pydantic import Field
 
+from core.errors import UserError
+from core.stage import Stage, StageContext, StageParams
 from pipeline.config import load_workflow
-from pipeline.errors import UserError
 from pipeline.report import sweep_records, sweep_tables
 from pipeline.sequences import SequenceInfo
-from pipeline.stage import Stage, StageContext, StageParams
 from pipeline.sweep import expand_sweep, flatten_sweep, point_name, run_sweep, sweep_points
 from schemas import read_artifact, write_artifact
 from tests.toy_stages import NUMBERS

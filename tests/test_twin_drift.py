@@ -1,4 +1,4 @@
-"""The drifting ColoRadar twins (issue 27, item 4): the registry entries, the variant file, the fixed gyro
+"""The drifting ColoRadar twins: the registry entries, the variant file, the fixed gyro
 offset and the real-radar effects (multipath ghosts, Doppler outliers, elevation spread) of simulator/radar.py.
 
 The effects are measured on a tiny voxel world (one wall, a box) with a standing radar: every true Doppler
@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from pipeline.sequences import load_registry
 from simulator import twin as twin_mod
 from simulator.params import RadarParams, radar_dump

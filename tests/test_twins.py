@@ -1,4 +1,4 @@
-"""ColoRadar twins (issue 19): voxel-map ray casting, recorded-path trajectories, the registered twin sequences.
+"""ColoRadar twins: voxel-map ray casting, recorded-path trajectories, the registered twin sequences.
 
 The real maps are read from ``../shared/data/coloradar_maps`` (beside the clone, as in CI); tests that need
 them skip with a message when it is absent.
@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from pipeline.sequences import load_registry
 from simulator.path_trajectory import PathTrajectory
 from simulator.raycast import cast
@@ -136,7 +136,7 @@ def test_carving_removes_only_voxels_near_the_path() -> None:
 
 
 def test_twins_carry_the_coloradar_error_model() -> None:
-    """The twins' rig has the datasheet error model (issue 17's terms); ``errors={}`` turns it off."""
+    """The twins' rig has the datasheet error model (the drifting worlds' terms); ``errors={}`` turns it off."""
     path = np.column_stack([np.linspace(0, 5, 50), np.zeros(50), np.full(50, 0.5)])
     wall = np.array([[x, 2.0, z] for x in np.arange(0, 5, 0.15) for z in np.arange(0, 1.5, 0.15)])
     w = twin_world("x_run0", wall, path, duration=10.0)

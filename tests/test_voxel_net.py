@@ -1,4 +1,4 @@
-"""The voxel completion model (issue 28): lattice, features, receptive radius, tiled inference = one pass."""
+"""The voxel completion model: lattice, features, receptive radius, tiled inference = one pass."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from pipeline.errors import UserError  # noqa: E402
+from core.errors import UserError  # noqa: E402
 from stages.complete.voxel_grid import (  # noqa: E402
     CHANNELS,
     Band,
@@ -269,7 +269,7 @@ def test_gated_union_keeps_the_radar_voxels_the_model_believes() -> None:
 
 def test_gate_rule_takes_the_lowest_gate_that_passes_the_union_rule(tmp_path) -> None:
     from stages.complete.voxel_checkpoint import VoxelMeta, load_voxel_checkpoint, save_voxel_checkpoint
-    from stages.complete.voxel_table3 import GATES, decide_gate, gate_row
+    from experiments.rmap_voxel_table3 import GATES, decide_gate, gate_row
 
     def table(split: str, f_by_gate: dict[float, tuple[float, float]]) -> dict:
         overall = {"voxel": {"cd_l2": 0.8, "fscore_0.15": 0.60}}
@@ -295,7 +295,7 @@ def test_gate_rule_takes_the_lowest_gate_that_passes_the_union_rule(tmp_path) ->
 def test_the_checkpoints_own_output_row_follows_its_union_and_gate() -> None:
     """``output_row`` names the Table III row that ``complete.model = voxel`` writes (the benchmark quotes it):
     the model alone, the plain union, or the gated union, as the checkpoint's metadata says."""
-    from stages.complete.voxel_table3 import ROWS, gate_row, output_row
+    from experiments.rmap_voxel_table3 import ROWS, gate_row, output_row
 
     assert output_row({}) == output_row({"union": None}) == "voxel"
     assert output_row({"union": {"radar": False, "gate": 0.0}}) == "voxel"
@@ -306,7 +306,7 @@ def test_the_checkpoints_own_output_row_follows_its_union_and_gate() -> None:
 
 
 def test_subvoxel_points_follow_the_neighbourhood_centroid() -> None:
-    """``subvoxel_points`` (stop 45): strength 0 is ``key_centres`` to the bit; a random prediction's offsets
+    """``subvoxel_points``: strength 0 is ``key_centres`` to the bit; a random prediction's offsets
     equal a brute-force probability-weighted centroid of the 27 neighbours; a voxel with one believed neighbour
     moves towards it only, an isolated or symmetric one not at all; no point leaves its voxel."""
     from stages.complete.voxel_net import TilePrediction, subvoxel_points
@@ -339,7 +339,7 @@ def test_subvoxel_placement_only_breaks_the_lattice_ties_of_the_fscore() -> None
     """Why the sub-voxel rows are a diagnostic: a map one voxel off its ground truth scores 0 in the robust
     F@0.15 on the lattice and 1 once nudged by 1.5 mm towards it, while the tie-free F@0.20 is 1 both ways."""
     from stages.complete.voxel_net import TilePrediction, subvoxel_points
-    from stages.complete.voxel_table3 import score
+    from experiments.rmap_voxel_table3 import score
 
     gt_keys = np.stack([np.arange(20), np.zeros(20, np.int64), np.zeros(20, np.int64)], 1)
     off = gt_keys + np.array([0, 1, 0])  # one voxel beside every ground-truth voxel

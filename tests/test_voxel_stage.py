@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from pipeline.errors import UserError
-from pipeline.recording import entity_paths_in
+from core.errors import UserError
+from core.recording import entity_paths_in
 from schemas.io import read_artifact, write_artifact
 from stages.odometry.stage import cov_columns
 from stages.voxel.stage import STAGE, VoxelParams

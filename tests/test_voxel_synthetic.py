@@ -14,8 +14,8 @@ import numpy.typing as npt
 from rich.console import Console
 from scipy.spatial.transform import Rotation
 
+from core.stage import StageContext, StageParams
 from pipeline.sequences import SequenceInfo
-from pipeline.stage import StageContext, StageParams
 from schemas.io import write_artifact
 
 ROOM_LO = np.array([-4.0, -3.0, -0.5])

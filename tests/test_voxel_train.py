@@ -117,7 +117,7 @@ def test_validate_reports_f1_at_its_best_threshold() -> None:
 
 
 def test_union_rule_is_decided_on_validation_tables_only() -> None:
-    from stages.complete.voxel_table3 import decide_union
+    from experiments.rmap_voxel_table3 import decide_union
 
     def table(split: str, cd_alone: float, cd_union: float, f_alone: float, f_union: float) -> dict:
         return {"split": split, "overall": {"voxel": {"cd_l2": cd_alone, "fscore_0.15": f_alone},
@@ -154,7 +154,7 @@ def test_crop_stream_workers_are_seeded_and_repeatable() -> None:
 
 def test_training_runs_from_an_initial_checkpoint_and_counts_its_time(tmp_path) -> None:
     """``--init``: the weights and config of a checkpoint, a fresh schedule, and the checkpoint's own training
-    seconds added to the new record (the CPU budget of issue 28 is cumulative)."""
+    seconds added to the new record (the CPU training budget is cumulative)."""
     from stages.complete.train_voxel import main
     from stages.complete.voxel_checkpoint import VoxelMeta, load_voxel_checkpoint, save_voxel_checkpoint
 
@@ -210,6 +210,6 @@ def test_the_voxel_model_needs_no_fpsample() -> None:
     import sys
 
     code = ("import sys; sys.modules['fpsample'] = None; "
-            "import stages.complete.train_voxel, stages.complete.voxel_table3, stages.complete.maps")
+            "import stages.complete.train_voxel, experiments.rmap_voxel_table3, stages.complete.maps")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

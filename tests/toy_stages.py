@@ -11,8 +11,8 @@ import numpy as np
 import pyarrow as pa
 from pydantic import Field
 
+from core.stage import Stage, StageContext, StageParams
 from pipeline.config import Workflow
-from pipeline.stage import Stage, StageContext, StageParams
 from schemas import write_artifact
 from schemas.artifacts import ArtifactSchema
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from stages.complete.model import ModelConfig, UpPoinTr
 
 FORMAT = "radar-pipeline/complete"

@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from pipeline.errors import UserError
+from core.errors import UserError
 
 F64 = npt.NDArray[np.float64]
 

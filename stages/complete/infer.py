@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from stages.complete.checkpoint import CheckpointMeta
 from stages.complete.data import F64, Patch, denormalize, normalize, resample
 from stages.complete.model import UpPoinTr

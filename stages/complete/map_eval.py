@@ -10,12 +10,12 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from core.map_metrics import map_metrics
+from core.rmap_paper import MAP_KEYS
 from stages.complete.checkpoint import CheckpointMeta
 from stages.complete.data import F64, Assembly, Patch, assemble_map
 from stages.complete.infer import complete_patches
 from stages.complete.model import UpPoinTr
-from stages.evaluate.map_metrics import map_metrics
-from stages.evaluate.rmap_paper import MAP_KEYS
 
 
 def predict_map(model: UpPoinTr, meta: CheckpointMeta, patches: Sequence[Patch], device: torch.device,
@@ -43,7 +43,7 @@ EXTRA_KEYS = ("precision_0.15", "recall_0.15", "fscore_0.15_robust", "precision_
 
 
 def score(pred: F64, gt: F64) -> dict[str, float]:
-    """The Table III metrics of a map against ground truth (``stages.evaluate.map_metrics``), plus the
+    """The Table III metrics of a map against ground truth (``core.map_metrics``), plus the
     robust F-score and both forms' precision and recall."""
     m = map_metrics(pred, gt)
     return {k: float(m[k]) for k in (*MAP_KEYS, *EXTRA_KEYS)} | {"n_points": float(len(pred))}

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from sources.mapset import SceneInfo
 from stages.complete.data import F64, Patch
 
@@ -65,7 +65,7 @@ def read_scene(root: str | Path, scene: str) -> tuple[F64, F64]:
 
 def scene_patches(radar: F64, lidar: F64, scene: str, a: float, seed: int = 0) -> list[Patch]:
     """Algorithm 1's patch pairs of one scene (the `patches` stage's defaults: 2048 radar, 8192 lidar points)."""
-    from stages.patches.fps_patches import make_patches  # fpsample: only patch users need it (not the voxel model)
+    from core.fps_patches import make_patches  # fpsample: only patch users need it (not the voxel model)
 
     res = make_patches(radar, lidar, a=a, seed=seed)
     rad = radar[res.radar_inliers]

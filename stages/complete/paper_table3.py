@@ -1,13 +1,13 @@
 """RMap Table III as published, in the row form of the Table III script (``map_table``).
 
-A view of :data:`stages.evaluate.rmap_paper.TABLE_III` (the one transcription of the paper's tables, with
+A view of :data:`core.rmap_paper.TABLE_III` (the one transcription of the paper's tables, with
 its errata: outdoors_run4's input F-score printed "0.0123" is 0.123): per scene (input row, RMap row) of
 (CD-l1, CD-l2, F-score, D-Dist 50, 75, 90, 95), in metres.
 """
 
 from __future__ import annotations
 
-from stages.evaluate.rmap_paper import MAP_KEYS, TABLE_III, TABLE_III_OVERALL, Scores
+from core.rmap_paper import MAP_KEYS, TABLE_III, TABLE_III_OVERALL, Scores
 
 Row = tuple[float, float, float, float, float, float, float]
 

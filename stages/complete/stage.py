@@ -28,9 +28,9 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from pydantic import Field
 
-from pipeline.errors import UserError
-from pipeline.paths import PROJECT_ROOT
-from pipeline.stage import Stage, StageContext, StageParams
+from core.errors import UserError
+from core.paths import PROJECT_ROOT
+from core.stage import Stage, StageContext, StageParams
 from stages.complete.data import F64, Assembly, assemble_map, read_patches
 from stages.complete.voxel_grid import Band, in_band, trajectory_band
 

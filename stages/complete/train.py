@@ -162,7 +162,7 @@ def save_state(path: Path, state: dict[str, Any]) -> None:
 
 def load_state(path: Path) -> dict[str, Any]:
     """A state written by :func:`save_state`; a one-line error when it is not one."""
-    from pipeline.errors import UserError
+    from core.errors import UserError
 
     if not path.exists():
         raise UserError(f"{path}: no training state to resume from; start without --resume")
@@ -177,11 +177,11 @@ def load_state(path: Path) -> dict[str, Any]:
 
 
 def _resume_compatible(state: dict[str, Any], cfg: TrainConfig, n_train: int, path: Path) -> None:
-    from pipeline.errors import UserError
+    from core.errors import UserError
 
     old = dict(state["config"])
     new = asdict(cfg)
-    # what may change between sessions: the epoch budget, the time limit and the device
+    # what may change between resumed runs: the epoch budget, the time limit and the device
     for k in ("epochs", "time_limit_s", "device"):
         old.pop(k, None)
         new.pop(k, None)
@@ -196,7 +196,7 @@ def _resume_compatible(state: dict[str, Any], cfg: TrainConfig, n_train: int, pa
 
 def _load_init(model: UpPoinTr, path: Path) -> None:
     """Start from the weights of the checkpoint at ``path`` (its model config must be the run's)."""
-    from pipeline.errors import UserError
+    from core.errors import UserError
     from stages.complete.checkpoint import load_checkpoint
 
     init, meta = load_checkpoint(path)
@@ -227,7 +227,7 @@ def train(
     every epoch row; with ``select`` the returned model is the epoch with the lowest ``select.key`` (the
     choice is made on validation data only). ``on_checkpoint(result, improved)`` runs after every epoch.
     ``cfg.patches_per_epoch`` draws a seeded random subset of the training patches for every epoch.
-    ``cfg.time_limit_s`` counts this session's time: the run stops after the epoch that passes it.
+    ``cfg.time_limit_s`` counts this run's time: the run stops after the epoch that passes it.
     """
     if not train_patches:
         raise ValueError("no training patches")

@@ -1,4 +1,4 @@
-"""Training of the voxel completion model on a published map set (issue 28):
+"""Training of the voxel completion model on a published map set:
 ``python -m stages.complete.train_voxel --maps ../shared/data/coloradar_maps --out data/models/rmap_voxel.safetensors``.
 
 - Scenes: only ``split = train`` of the map set's ``index.json``; the validation part is fixed before training
@@ -11,7 +11,7 @@
 - Loss: weighted BCE (``pos_weight``) + soft Dice over the loss voxels (class imbalance: 3-12 % occupied),
   optionally + a coverage term (:func:`coverage_loss`, ``coverage_weight``): the BCE of each 0.6 m and 1.2 m
   cell's highest prediction against whether the cell holds a lidar voxel, for the regions that squared Chamfer
-  distance punishes most: ground truth metres from any predicted voxel (stop 38).
+  distance punishes most: ground truth metres from any predicted voxel.
 - Validation (fixed before training): every ``val_every`` steps, the same deterministic crops of the
   validation scenes; the voxel F1 (exact voxel matches) at every threshold of ``THRESHOLDS``; the selected
   checkpoint is the one with the highest F1 (its threshold stored with it).
@@ -40,7 +40,7 @@ import numpy.typing as npt
 import torch
 from pydantic import BaseModel, Field
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from stages.complete.voxel_checkpoint import VoxelMeta, save_voxel_checkpoint
 from stages.complete.voxel_grid import (
     F32,
@@ -264,7 +264,7 @@ def validate(model: VoxelUNet, crops: list[Crop], cfg: VoxelTrainConfig,
             "val_precision": float(prec[b]), "val_recall": float(rec[b]), "val_f1_by_threshold": f1.round(4).tolist()}
 
 
-#: the rule of stop 42, written before any symmetry-averaged prediction was scored on a validation or test map:
+#: the rule, written before any symmetry-averaged prediction was scored on a validation or test map:
 #: the training's own threshold rule (the highest validation-crop voxel F1) taken over the symmetry counts too
 TTA_RULE = ("the symmetry count n in (1, 2, 4, 8) and threshold t with the highest validation-crop voxel F1 of "
             "the n-symmetry mean probability (ties: the smaller n); the gate is then decided anew (GATE_RULE)")

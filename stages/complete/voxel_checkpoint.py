@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from stages.complete.voxel_grid import CHANNELS, I64, Band
 from stages.complete.voxel_net import (
     MODEL_KIND,
@@ -39,7 +39,7 @@ class VoxelMeta:
     #: with ``union_radar``: only radar voxels whose predicted probability is at least this are added (0: all)
     union_gate: float = 0.0
     #: lattice symmetries averaged at inference (``voxel_net.symmetric_probability``); the threshold and the gate
-    #: were chosen with this many (1: the network alone, checkpoints before stop 42)
+    #: were chosen with this many (1: the network alone, older checkpoints)
     tta: int = 1
 
     def output_keys(self, pred: TilePrediction, radar_keys: I64) -> I64:

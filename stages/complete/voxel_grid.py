@@ -1,7 +1,7 @@
 """The voxel lattice of a published map set and the voxel model's inputs, as pure numpy functions.
 
 RMap's radar and ``lidar_filtered`` maps are occupied voxel centres on one 0.15 m lattice (every coordinate
-is ``(k + 1/2) * res``, issue 28), so completion can be posed as a per-voxel occupancy prediction. Here:
+is ``(k + 1/2) * res``), so completion can be posed as a per-voxel occupancy prediction. Here:
 
 - :func:`lattice_keys` / :func:`key_centres`: integer voxel keys of a map and back (a one-line error when
   a map is not on the lattice);

@@ -1,4 +1,4 @@
-"""Voxel completion network (issue 28, ``complete.model = voxel``): a fully convolutional 3D U-Net in plain
+"""Voxel completion network (``complete.model = voxel``): a fully convolutional 3D U-Net in plain
 torch ``conv3d`` that maps the radar map's lattice to a per-voxel occupancy logit of the lidar map.
 
 No normalisation layer (no BatchNorm / GroupNorm), so a voxel's output depends only on the inputs within
@@ -357,14 +357,14 @@ NEIGHBOURHOOD = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing="ij"), 
 
 
 def subvoxel_points(pred: TilePrediction, keys: I64, res: float, strength: float) -> F64:
-    """The completed voxels ``keys`` as points off the lattice (a diagnostic of the F-score, stop 45): each voxel
+    """The completed voxels ``keys`` as points off the lattice (a diagnostic of the F-score): each voxel
     centre moved ``strength`` of the way to the probability-weighted centroid of its 3 x 3 x 3 neighbourhood
     (the voxel's sub-voxel surface estimate). The offset is below one voxel on every axis, so ``strength <=
     0.5`` keeps each point within ``0.5 * sqrt(3) * res < res`` of its centre; ``strength = 0`` gives
     :func:`stages.complete.voxel_grid.key_centres`.
 
     On a lattice the F-score at ``d = res`` sees face neighbours exactly at ``d``; any move breaks those ties,
-    so the F at ``d`` measures the placement as much as the map (data/models/README.md, stop 45)."""
+    so the F at ``d`` measures the placement as much as the map (data/models/README.md)."""
     if not 0.0 <= strength <= 1.0:
         raise ValueError(f"strength must be within [0, 1], got {strength}")
     keys = np.asarray(keys, np.int64).reshape(-1, 3)

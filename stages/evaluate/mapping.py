@@ -1,7 +1,7 @@
 """Mapping accuracy (RICH-SLAM Q1/Q2, Fig. 6, 7, 10): occupancy AUC of HILBERT-GP and the Hilbert-map baselines.
 
 Pure functions on numpy arrays. HILBERT-GP uses the map core of the slam stage
-(``stages/slam/hilbert_map.py``): the basis of eq. 6-7, the prior of eq. 10 and the Kalman update of
+(``core/hilbert_map.py``): the basis of eq. 6-7, the prior of eq. 10 and the Kalman update of
 eq. 15-19, applied scan by scan to the training samples in time order. The baselines are logistic
 Hilbert maps trained by SGD (``baselines.py``); an occupancy-count grid is a reference.
 """
@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from core import hilbert_map as hm
 from stages.evaluate import baselines
 from stages.evaluate.occupancy import LabelledSamples, grid_counts_fit, grid_counts_predict, roc_auc
-from stages.slam import hilbert_map as hm
 
 F64 = npt.NDArray[np.float64]
 METHODS = ("hilbert_gp", "rff", "sparse", "nystrom", "grid")

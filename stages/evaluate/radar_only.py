@@ -1,4 +1,4 @@
-"""Radar-only maps (issue 29): the RMap maps built along ground truth, the odometry and each SLAM method.
+"""Radar-only maps: the RMap maps built along ground truth, the odometry and each SLAM method.
 
 The records are a sweep's (``workflows/sweep_radar_only.toml``): one point per trajectory the voxel stage
 built its radar map along (``voxel.trajectory`` and ``voxel.slam_method`` in the point's ``params``), each

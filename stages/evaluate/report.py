@@ -2,7 +2,7 @@
 
 The orchestration layer gathers the metric records of several runs (``pipeline/report.py``,
 ``pipeline/sweep.py``) and reaches this module through the stage registry
-(``load_stages()["evaluate"].report()``, :class:`pipeline.stage.StageReport`); everything that formats
+(``load_stages()["evaluate"].report()``, :class:`core.stage.StageReport`); everything that formats
 or draws those records lives here, beside the code that computes them.
 
 Map sequences (``rmap_<scene>``): :meth:`EvaluationReport.tables` adds the paper's Tables III, IV, VI and I
@@ -292,7 +292,7 @@ def summary_rows(records: Sequence[Mapping[str, Any]], metric: str = "auc") -> l
 
 
 class EvaluationReport:
-    """The evaluate stage's :class:`pipeline.stage.StageReport` (what ``pipeline report`` and sweeps call)."""
+    """The evaluate stage's :class:`core.stage.StageReport` (what ``pipeline report`` and sweeps call)."""
 
     metrics_file = "metrics.parquet"
     sweep_figure_kinds: Sequence[str] = SWEEP_FIGURES

@@ -1,8 +1,10 @@
-"""RICH-SLAM's published localisation results as data (Table III of ``shared/papers/rich-slam.md``).
+"""RICH-SLAM's published localisation results as data.
+
+Table III of "RICH-SLAM: Radar SLAM with Incremental and Continuous Hilbert Mapping".
 
 Horizontal position RMSE [m] / yaw RMSE [deg] after the SE(2) alignment on the first 100 matched frames,
 transcribed as printed. The ColoRadar columns CR 1-6 are the sequences that the twins ``coloradar_N_twin``
-rebuild (issue 19); Seq. 1-3 are the authors' own ARS548 recordings, which have no counterpart here.
+rebuild; Seq. 1-3 are the authors' own ARS548 recordings, which have no counterpart here.
 Used by ``python -m experiments.slam_table3 --table ... --paper`` and checked against the paper's text by
 ``tests/test_rich_slam_paper.py``.
 """

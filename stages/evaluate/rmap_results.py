@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.errors import UserError
+from core.errors import UserError
+from core.map_metrics import MapComparison, comparison_metrics, lr_ratio, nearest
 from schemas import read_artifact
-from stages.evaluate.map_metrics import MapComparison, comparison_metrics, lr_ratio, nearest
 from stages.evaluate.rmap_figures import plot_top_views
 from stages.evaluate.rmap_tables import BAND, COMPLETED, F64, INPUT, LIDAR, MODEL_PREFIX, SceneResult, scene_name
 

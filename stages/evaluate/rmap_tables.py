@@ -2,7 +2,7 @@
 
 Pure functions over per-scene results (:class:`SceneResult`, collected from run folders by
 :func:`stages.evaluate.rmap_results.collect_scene_results`); the paper's numbers come from
-:mod:`stages.evaluate.rmap_paper`. Conventions (``shared/data/coloradar_maps/README.md``):
+:mod:`core.rmap_paper`. Conventions (``shared/data/coloradar_maps/README.md``):
 
 - a table's "Overall" CD-l1, CD-l2, F-score and CD^x/y/z are the mean of its scene rows (the paper's
   Overall rows are, to 0.0005); Overall D-Dist pools the ground-truth distances of all its scenes when
@@ -11,8 +11,8 @@ Pure functions over per-scene results (:class:`SceneResult`, collected from run 
 - Table I: L/R is the mean of the per-scene ratios, D-Dist pooled over the environment's scenes;
 - scenes whose ground truth was rebuilt from published patches are marked with a dagger.
 
-Map ``method`` names are DESIGN.md's: ``radar_map`` (the input), ``completed_map`` (ours), ``lidar_map``.
-When the complete stage ran several models (``complete.models``, issue 28 item 3) the evaluate stage also
+Map ``method`` names are the artifacts': ``radar_map`` (the input), ``completed_map`` (ours), ``lidar_map``.
+When the complete stage ran several models (``complete.models``) the evaluate stage also
 writes ``completed_map_<model>`` (one per model, the configured one included) and ``radar_map_band`` (the
 pre-filtered input); Tables III, IV and VI then have one row per map (:func:`table_iii_models`,
 :func:`table_iv_models`, :func:`table_vi`).
@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from stages.evaluate import rmap_paper as paper
-from stages.evaluate.map_metrics import DDIST_PERCENTILES, pooled_deviation_distribution
+from core import rmap_paper as paper
+from core.map_metrics import DDIST_PERCENTILES, pooled_deviation_distribution
 from stages.evaluate.tables import fmt, markdown
 
 F64 = npt.NDArray[np.float64]

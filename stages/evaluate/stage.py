@@ -31,8 +31,8 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import Field
 
-from pipeline.errors import UserError
-from pipeline.stage import Stage, StageContext, StageParams, StageReport, blas_threads, parquet_rows
+from core.errors import UserError
+from core.stage import Stage, StageContext, StageParams, StageReport, blas_threads, parquet_rows
 from schemas import read_artifact, write_artifact
 from stages.evaluate import figures, tables
 from stages.evaluate.trajectory import (
@@ -364,8 +364,8 @@ class Evaluation:
         d = ctx.input_dirs.get("slam")
         if d is None or not (d / "map_posterior.parquet").exists() or not ctx.params.query_spacings:
             return
-        from stages.plan.stage import field_from_posterior, grid_axes
-        from stages.slam import hilbert_map as hm
+        from core import hilbert_map as hm
+        from core.map_field import field_from_posterior, grid_axes
 
         field = field_from_posterior(read_artifact(d / "map_posterior.parquet", "map_posterior"))
         basis, theta, cov, M = field.basis, field.theta, field.cov, field.basis.M
@@ -436,7 +436,7 @@ class Evaluation:
         gy = np.arange(lo[1] + p.grid_spacing / 2, hi[1], p.grid_spacing)
         pts = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
         mean, var, occ = fit.query(pts)
-        from stages.slam import hilbert_map as hm
+        from core import hilbert_map as hm
 
         u0 = hm.prior_variance_at(fit.basis, fit.prior_diag, pts)
         write_artifact({"x": pts[:, 0], "y": pts[:, 1], "occupancy": occ, "variance": var, "mean": mean,
@@ -529,7 +529,7 @@ class Evaluation:
 
     # -- RMap (Tables I, III, IV) -----------------------------------------------------------------------------------
     def _rmap(self, ctx: StageContext) -> None:
-        from stages.evaluate.map_metrics import lr_ratio, map_metrics
+        from core.map_metrics import lr_ratio, map_metrics
 
         p: EvaluateParams = ctx.params
 

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from stages.ingest.geometry import interpolate_poses
+from core.geometry import interpolate_poses
 
 F64 = npt.NDArray[np.float64]
 LABELS = {0: "true", 1: "clutter", 2: "ghost"}

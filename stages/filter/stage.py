@@ -18,13 +18,13 @@ import numpy.typing as npt
 import pyarrow as pa
 from pydantic import Field
 
-from pipeline.stage import Stage, StageContext, StageParams
+from core.geometry import interpolate_poses, matrices_to_poses
+from core.stage import Stage, StageContext, StageParams
 from schemas.io import read_artifact, write_artifact
 from stages.filter import ego_velocity as ev
 from stages.filter.evaluation import label_fractions, radar_velocity_from_groundtruth, velocity_errors
 from stages.filter.tracking import frame_motions, interval_rotations, track_masks
 from stages.filter.uncertainty import max_sigma, point_covariances
-from stages.ingest.geometry import interpolate_poses, matrices_to_poses
 
 DEG = np.pi / 180.0
 
@@ -234,7 +234,7 @@ class FilterStage(Stage):
              v_gt: tuple[npt.NDArray[np.float64], npt.NDArray[np.bool_]] | None) -> None:
         import rerun as rr
 
-        from pipeline.recording import time_columns
+        from core.recording import time_columns
 
         p: FilterParams = ctx.params
         rec = ctx.recording

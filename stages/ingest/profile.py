@@ -9,9 +9,9 @@ from typing import Any
 import tomllib
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from pipeline.errors import UserError
-from pipeline.paths import data_dir
-from stages.ingest.geometry import F64, pose_matrix
+from core.errors import UserError
+from core.geometry import F64, pose_matrix
+from core.paths import data_dir
 
 STREAMS = ("radar", "lidar", "imu", "groundtruth", "odometry")
 

@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from pipeline.errors import UserError
+from core.errors import UserError
+from core.geometry import pose_matrix
 from stages.ingest import pointcloud2 as pc2
-from stages.ingest.geometry import pose_matrix
 from stages.ingest.profile import DatasetProfile
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"

@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 import pyarrow.parquet as pq
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from stages.ingest.readers import Message
 
 

@@ -20,19 +20,15 @@ import hashlib
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
 from pydantic import Field, field_validator
 
-from pipeline.errors import UserError
-from pipeline.sequences import SequenceInfo, source_fingerprint
-from pipeline.stage import Stage, StageContext, StageParams
-from schemas.io import ArtifactWriter, write_artifact
-from stages.ingest.clock import NS, ClockPlan, TimeSource, plan_clocks, spans_overlap
-from stages.ingest.geometry import (
+from core.errors import UserError
+from core.geometry import (
     F64,
     interpolate_poses,
     lookup,
@@ -40,9 +36,16 @@ from stages.ingest.geometry import (
     pose_matrix,
     poses_to_matrices,
 )
+from core.stage import Stage, StageContext, StageParams
+from schemas.io import ArtifactWriter, write_artifact
+from sources.recorded import fingerprint
+from stages.ingest.clock import NS, ClockPlan, TimeSource, plan_clocks, spans_overlap
 from stages.ingest.profile import DatasetProfile, load_profile, profiles_dir
 from stages.ingest.readers import Message, Source, open_source
 from stages.ingest.sink import LabelSidecar, ReorderBuffer, StreamStats, finite_mask, sort_poses
+
+if TYPE_CHECKING:
+    from pipeline.sequences import SequenceInfo
 
 SENSORS = ("radar", "lidar", "imu")
 
@@ -126,10 +129,10 @@ class IngestStage(Stage):
         if path is None:
             out["source"] = {"missing": [str(p) for p in seq.expected_locations()]}
             return out
-        out["source"] = source_fingerprint(path)
+        out["source"] = fingerprint(path)
         sidecar = LabelSidecar.find(path)
         if sidecar is not None:
-            out["labels"] = source_fingerprint(sidecar.path)
+            out["labels"] = fingerprint(sidecar.path)
         return out
 
     def run(self, ctx: StageContext) -> None:
@@ -402,7 +405,7 @@ class _Ingest:
         self.rr_buf[stream] = []
         import rerun as rr
 
-        from pipeline.recording import time_columns
+        from core.recording import time_columns
 
         radar = stream == "radar"
         entity = "world/radar/raw" if radar else "world/lidar"
@@ -419,7 +422,7 @@ class _Ingest:
         """Ground truth as a path; sensor clouds placed in the world by ground truth (world <- sensor)."""
         import rerun as rr
 
-        from pipeline.recording import time_columns
+        from core.recording import time_columns
 
         t, v = gt
         rec = self.ctx.recording

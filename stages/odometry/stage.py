@@ -20,13 +20,13 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import Field
 
-from pipeline.errors import UserError
-from pipeline.stage import Stage, StageContext, StageParams
+from core.errors import UserError
+from core.geometry import interpolate_poses, roll_pitch_of, yaw_of
+from core.stage import Stage, StageContext, StageParams
+from core.trajectory_metrics import drift, increment_nees, se2_compose_anchor, se2_increments
 from schemas.artifacts import ODOMETRY_COV_COLS, ODOMETRY_COV_IDX
 from schemas.io import read_artifact, write_artifact
-from stages.ingest.geometry import interpolate_poses, roll_pitch_of, yaw_of
 from stages.odometry.ekf_rio import EkfConfig, increment_covariance, run_ekf
-from stages.odometry.metrics import drift, increment_nees, se2_compose_anchor, se2_increments
 
 POSE_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 #: the increment covariance's columns (body frame of the previous scan: dx, dy, dyaw)

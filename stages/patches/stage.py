@@ -16,10 +16,10 @@ import numpy as np
 import pyarrow as pa
 from pydantic import Field
 
-from pipeline.errors import UserError
-from pipeline.stage import Stage, StageContext, StageParams
+from core.errors import UserError
+from core.fps_patches import Patches, make_patches
+from core.stage import Stage, StageContext, StageParams
 from schemas.io import read_artifact, write_artifact
-from stages.patches.fps_patches import Patches, make_patches
 
 
 class PatchesParams(StageParams):

@@ -17,7 +17,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import minimize
 
-from stages.plan.field import MapField, Strategy, strategy_cost
+from core.map_field import MapField, Strategy, strategy_cost
 
 F64 = npt.NDArray[np.float64]
 

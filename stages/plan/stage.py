@@ -17,11 +17,11 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import Field, model_validator
 
-from pipeline.errors import UserError
-from pipeline.stage import Stage, StageContext, StageParams, blas_threads
+from core.errors import UserError
+from core.map_field import MapField, field_from_posterior, grid_axes, strategy_cost
+from core.stage import Stage, StageContext, StageParams, blas_threads
 from schemas import read_artifact, write_artifact
 from stages.plan.astar import astar
-from stages.plan.field import MapField, strategy_cost
 from stages.plan.refine import PlanProblem, refine, resample_polyline
 
 F64 = npt.NDArray[np.float64]
@@ -62,26 +62,6 @@ class PlanParams(StageParams):
         if self.waypoint_spacing > self.d_max:
             raise ValueError(f"waypoint_spacing {self.waypoint_spacing} exceeds d_max {self.d_max}")
         return self
-
-
-def field_from_posterior(table: Any) -> MapField:
-    """The map field of a ``map_posterior.parquet`` table (one row)."""
-    from stages.slam import hilbert_map as hm
-
-    row = {c: table[c][0].as_py() for c in table.column_names}
-    M = int(row["M"])
-    kind: hm.BasisKind = "circular" if row.get("basis_kind") == "circular" else "tensor"
-    basis = hm.make_basis((row["L1"], row["L2"]), (row["cx"], row["cy"]), M, kind)
-    theta = np.asarray(row["theta"], np.float64)
-    cov = np.asarray(row["cov"], np.float64).reshape(M, M)
-    lengthscale_m = float(row["lengthscale"]) * float(row.get("length_unit_m") or 1.0)
-    prior_diag = hm.prior_variances(basis, lengthscale_m, float(row["signal_variance"]))
-    return MapField(basis, theta, cov, prior_diag)
-
-
-def grid_axes(lo: F64, hi: F64, spacing: float) -> tuple[F64, F64]:
-    """Cell-centre coordinates of a grid covering [lo, hi]."""
-    return (np.arange(lo[0] + spacing / 2, hi[0], spacing), np.arange(lo[1] + spacing / 2, hi[1], spacing))
 
 
 def nearest_free(blocked: npt.NDArray[np.bool_], cell: tuple[int, int]) -> tuple[int, int] | None:
@@ -230,7 +210,7 @@ class PlanStage(Stage):
 
 def _prior_variance(field: MapField, pts: F64) -> F64:
     """Prior latent variance ``Phi^T Lambda Phi`` at points: the normaliser of the uncertainty panel."""
-    from stages.slam import hilbert_map as hm
+    from core import hilbert_map as hm
 
     if field.prior_diag is None:
         return np.full(len(pts), np.nan)

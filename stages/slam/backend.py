@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pipeline.errors import UserError
+from core.errors import UserError
 
 Backend = Literal["numpy", "torch"]
 Device = Literal["auto", "cpu", "cuda"]

@@ -16,7 +16,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from stages.slam import hilbert_map as hm
+from core import hilbert_map as hm
 from stages.slam.backend import Backend, Device, resolve_device
 from stages.slam.beam_sampling import BeamSamples, to_world
 from stages.slam.grid_map import GridModel, GridParticleMaps, make_grid_spec

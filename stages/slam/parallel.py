@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from stages.slam import hilbert_map as hm
+from core import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples
 from stages.slam.particle_linalg import StackedCovariance, StackedInformation, select_rows
 from stages.slam.rbpf import HilbertParticleMaps, MapModel

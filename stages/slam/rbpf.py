@@ -16,8 +16,8 @@ from typing import Any, Literal, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from stages.odometry.metrics import se2_increments
-from stages.slam import hilbert_map as hm
+from core import hilbert_map as hm
+from core.trajectory_metrics import se2_increments
 from stages.slam.beam_sampling import BeamSamples, stencil_offsets, to_world
 from stages.slam.particle_linalg import StackedCovariance, StackedInformation
 from stages.slam.se2 import compose

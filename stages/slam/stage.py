@@ -24,15 +24,15 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from pydantic import Field, model_validator
 
-from pipeline.errors import UserError
-from pipeline.stage import Stage, StageContext, StageParams
+from core.errors import UserError
+from core.stage import Stage, StageContext, StageParams
 
 if TYPE_CHECKING:
     from pipeline.sequences import SequenceInfo
 
+from core import hilbert_map as hm
 from schemas.artifacts import ODOMETRY_COV_COLS, ODOMETRY_COV_IDX
 from schemas.io import SchemaError, read_artifact, write_artifact
-from stages.slam import hilbert_map as hm
 from stages.slam.backend import resolve_device
 from stages.slam.beam_sampling import BeamSamples, radar_to_body_2d, sample_beams, to_world
 from stages.slam.divergence import heading_deviation

@@ -25,7 +25,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from stages.slam import hilbert_map as hm
+from core import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, stencil_offsets
 from stages.slam.rbpf import MapModel
 

@@ -58,9 +58,9 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import Field
 
-from pipeline.errors import UserError
-from pipeline.recording import scan_lengths
-from pipeline.stage import Stage, StageContext, StageParams, parquet_rows
+from core.errors import UserError
+from core.recording import scan_lengths
+from core.stage import Stage, StageContext, StageParams, parquet_rows
 from schemas.io import read_artifact, write_artifact
 from sources import mapset
 from stages.voxel import octomap_io

@@ -1,6 +1,8 @@
-"""The RMap paper's published numbers as data (Tables I-VI of ``shared/papers/rmap.md``), with errata.
+"""The RMap paper's published numbers as data, with errata.
 
-Transcribed as printed, except where :data:`ERRATA` says otherwise; metric keys are DESIGN.md's names
+Tables I-VI of "RMap: Millimeter-Wave Radar Mapping Through Volumetric Upsampling".
+
+Transcribed as printed, except where :data:`ERRATA` says otherwise; metric keys are the report's names
 (``cd_l1``, ``cd_l2`` in m and m^2, ``fscore_0.15``, ``ddist_p50`` .. ``ddist_p95`` in m). The paper's tables
 print CD values in metres although the text says x1000 (``shared/data/coloradar_maps/README.md``).
 Used by :mod:`stages.evaluate.rmap_tables` (the side-by-side tables) and ``tests/test_rmap_paper.py``.
@@ -24,7 +26,7 @@ class Scores:
     ddist: tuple[float, float, float, float]
 
     def metrics(self) -> dict[str, float]:
-        """The row under DESIGN.md's metric names."""
+        """The row under the report's metric names."""
         return {"cd_l1": self.cd_l1, "cd_l2": self.cd_l2, "fscore_0.15": self.fscore,
                 **dict(zip(DDIST_KEYS, self.ddist, strict=True))}
 

@@ -6,7 +6,7 @@ patch through the network, predictions merged and assembled at 0.15 m: ``average
 the mean of the points in each voxel) and/or ``snap`` (the voxel centres, on the maps' lattice), both
 from the same network output. Run it as
 
-    python -m stages.complete.map_table --maps ../shared/data/coloradar_maps \
+    python -m experiments.rmap_uppointr_table --maps ../shared/data/coloradar_maps \
         --checkpoint data/models/rmap_coloradar_small.safetensors --assembly average,snap --out runs/table3.md
 """
 

@@ -8,12 +8,12 @@ sines of eq. 6, ``stages/slam/hilbert_map.feature_gradients``). Pure numpy.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 
-from stages.slam import hilbert_map as hm
+from core import hilbert_map as hm
 
 F64 = npt.NDArray[np.float64]
 Strategy = Literal["greedy", "uncertainty"]
@@ -81,3 +81,21 @@ def strategy_cost(v: FieldValues, strategy: Strategy, eps: float) -> tuple[F64, 
     ds = v.du / (2.0 * np.maximum(s, 1e-12))[:, None]
     dc = v.dz / den[:, None] - (v.z / den**2)[:, None] * ds
     return c, dc
+
+
+def field_from_posterior(table: Any) -> MapField:
+    """The map field of a ``map_posterior.parquet`` table (one row)."""
+    row = {c: table[c][0].as_py() for c in table.column_names}
+    M = int(row["M"])
+    kind: hm.BasisKind = "circular" if row.get("basis_kind") == "circular" else "tensor"
+    basis = hm.make_basis((row["L1"], row["L2"]), (row["cx"], row["cy"]), M, kind)
+    theta = np.asarray(row["theta"], np.float64)
+    cov = np.asarray(row["cov"], np.float64).reshape(M, M)
+    lengthscale_m = float(row["lengthscale"]) * float(row.get("length_unit_m") or 1.0)
+    prior_diag = hm.prior_variances(basis, lengthscale_m, float(row["signal_variance"]))
+    return MapField(basis, theta, cov, prior_diag)
+
+
+def grid_axes(lo: F64, hi: F64, spacing: float) -> tuple[F64, F64]:
+    """Cell-centre coordinates of a grid covering [lo, hi]."""
+    return (np.arange(lo[0] + spacing / 2, hi[0], spacing), np.arange(lo[1] + spacing / 2, hi[1], spacing))

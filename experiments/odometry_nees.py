@@ -1,13 +1,13 @@
-"""The NEES check of the odometry's increment covariance (issue 27, item 1), on finished odometry runs.
+"""The NEES check of the odometry's increment covariance, on finished odometry runs.
 
-Usage: ``python -m stages.odometry.nees RUNS_DIR SEQ [SEQ ...] [--calibrate CAL [CAL ...]]``. For each
+Usage: ``python -m experiments.odometry_nees RUNS_DIR SEQ [SEQ ...] [--calibrate CAL [CAL ...]]``. For each
 sequence, the normalised estimation error squared of the body-frame increments against the ground truth
-(:func:`stages.odometry.metrics.increment_nees`; chi-square(3): mean 3, median 2.37). ``--calibrate`` names
+(:func:`core.trajectory_metrics.increment_nees`; chi-square(3): mean 3, median 2.37). ``--calibrate`` names
 runs (never evaluated ones) whose pooled mean NEES gives the factor ``increment_cov_scale`` that makes it 3;
 the table is then also given with that factor. ``--windows``: also the heading NEES over windows of 1, 10, 100
-and 300 increments (:func:`stages.odometry.metrics.heading_window_nees`; 1 at every window when the increments'
+and 300 increments (:func:`core.trajectory_metrics.heading_window_nees`; 1 at every window when the increments'
 errors are independent). ``--speed``: also the distance the odometry moves in 10 s over the truth's
-(:func:`stages.odometry.metrics.distance_ratio`: a speed scale error, issue 27 item 2). Runs come from
+(:func:`core.trajectory_metrics.distance_ratio`: a speed scale error). Runs come from
 ``pipeline run odometry --seq SEQ --runs-dir RUNS_DIR``; the covariances are divided by the factor each run was
 made with, so the factor is chosen on the EKF's own covariance.
 """
@@ -23,16 +23,16 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from pipeline.errors import UserError
-from schemas.io import read_artifact
-from stages.ingest.geometry import interpolate_poses, yaw_of
-from stages.odometry.metrics import (
+from core.errors import UserError
+from core.geometry import interpolate_poses, yaw_of
+from core.trajectory_metrics import (
     NEES_TOLERANCE,
     NEES_WINDOWS,
     distance_ratio,
     heading_window_nees,
     increment_nees,
 )
+from schemas.io import read_artifact
 from stages.odometry.stage import _COV_IDX, COV_COLS, POSE_COLS
 
 F64 = npt.NDArray[np.float64]

@@ -1,7 +1,7 @@
 """Rerun conventions: one recording id per sequence, one ``.rrd`` per stage, bulk logging by columns.
 
 Timelines are ``scan`` (sequence index) and ``sensor_time`` (timestamp). Entity paths follow
-DESIGN.md (``world/radar/raw``, ``world/slam/trajectory``, ``metrics/<name>``, ...).
+the artifact contract (``world/radar/raw``, ``world/slam/trajectory``, ``metrics/<name>``, ...).
 """
 
 from __future__ import annotations

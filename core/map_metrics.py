@@ -172,7 +172,7 @@ def lr_ratio(lidar: npt.ArrayLike | int, radar: npt.ArrayLike | int) -> float:
 
 
 def map_metrics(pred: npt.ArrayLike, gt: npt.ArrayLike, d: float = 0.15) -> dict[str, float]:
-    """All map metrics under DESIGN.md's metric names (``cd_l1``, ``cd_l2``, ``fscore_0.15``, ``ddist_p50``..)."""
+    """All map metrics under the report's metric names (``cd_l1``, ``cd_l2``, ``fscore_0.15``, ``ddist_p50``..)."""
     return comparison_metrics(MapComparison(pred, gt), d)
 
 

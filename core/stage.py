@@ -23,10 +23,10 @@ from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from pipeline.errors import UserError
+from core.errors import UserError
 
 if TYPE_CHECKING:
-    from pipeline.recording import StageRecording
+    from core.recording import StageRecording
     from pipeline.sequences import SequenceInfo
 
 
@@ -234,7 +234,7 @@ class StageContext:
     def recording(self) -> StageRecording:
         """The stage's Rerun recording (``<stage>.rrd`` in the output folder), opened on first use."""
         if self._recording is None:
-            from pipeline.recording import StageRecording
+            from core.recording import StageRecording
 
             self._recording = StageRecording(self.seq.name, self.out_dir / f"{self.stage}.rrd")
         return self._recording

@@ -1,4 +1,4 @@
-"""RMap Table VI over several run folders, one per a_test: ``python -m stages.evaluate.rmap_table_vi DIR ...``.
+"""RMap Table VI over several run folders, one per a_test: ``python -m experiments.rmap_table_vi DIR ...``.
 
 ``pipeline report`` reads one run store, so it shows Table VI for the a_test of that store only. Run the map
 sequences once per a_test into their own store (``pipeline run all --seq 'rmap_*' --set patches.a=1
@@ -13,7 +13,7 @@ import argparse
 from collections.abc import Sequence
 from pathlib import Path
 
-from pipeline.errors import UserError
+from core.errors import UserError
 from stages.evaluate import rmap_tables as rt
 from stages.evaluate.rmap_results import collect_scene_results
 

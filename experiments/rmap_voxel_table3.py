@@ -1,10 +1,10 @@
-"""RMap Table III for the voxel model and the trajectory-band pre-filter on a published map set (issue 28):
-``python -m stages.complete.voxel_table3 --maps ../shared/data/coloradar_maps --split test``.
+"""RMap Table III for the voxel model and the trajectory-band pre-filter on a published map set:
+``python -m experiments.rmap_voxel_table3 --maps ../shared/data/coloradar_maps --split test``.
 
 Rows per scene and Overall (the mean of the per-scene rows): the input radar map, the pre-filtered input
 (:func:`stages.complete.voxel_grid.trajectory_band`), the voxel model alone, the voxel model united with the
-pre-filtered radar map, and (test split) the paper's RMap row (``stages.evaluate.rmap_paper``). Metrics:
-CD-l1, CD-l2, F@0.15 paper-exact and robust, with precision and recall (``stages.evaluate.map_metrics``).
+pre-filtered radar map, and (test split) the paper's RMap row (``core.rmap_paper``). Metrics:
+CD-l1, CD-l2, F@0.15 paper-exact and robust, with precision and recall (``core.map_metrics``).
 ``--split val`` scores the validation scenes (the choices: union or not); ``--no-model`` only the inputs.
 Inference seconds (features + network) and a same-run ``torch.mm`` GFLOP/s reference are reported.
 """
@@ -26,9 +26,9 @@ METRICS = ("cd_l1", "cd_l2", "fscore_0.15", "fscore_0.15_robust", "precision_0.1
            "precision_0.15_robust", "recall_0.15_robust", "ddist_p50", "ddist_p75", "ddist_p90", "ddist_p95",
            "cd_x", "cd_y", "cd_z")
 #: a threshold with no lattice ties (0.15 m voxels: neighbours at 0.15, 0.21, 0.26, 0.30 m), reported beside the
-#: paper's 0.15 so that a placement that only breaks ties shows as such (stop 45)
+#: paper's 0.15 so that a placement that only breaks ties shows as such
 TIE_FREE_D = 0.2
-#: the paper's inference time (s): 1262 patches on an RTX 6000 (issue 28's target for the 18 test scenes)
+#: the paper's inference time (s): 1262 patches on an RTX 6000 (the target for the 18 test scenes)
 PAPER_SECONDS = 56.0
 ROWS = ("input", "prefiltered input", "voxel", "voxel + prefiltered radar", "paper RMap")
 
@@ -55,7 +55,7 @@ def mm_gflops(threads: int | None = None, n: int = 2048, device: str = "cpu") ->
 
 
 def score(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
-    from stages.evaluate.map_metrics import MapComparison, comparison_metrics
+    from core.map_metrics import MapComparison, comparison_metrics
 
     cmp = MapComparison(pred, gt)
     m = comparison_metrics(cmp)
@@ -90,9 +90,9 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
     gated unions (:func:`gate_row`); the checkpoint's own gate, if it has one, is always a row. ``tta``: the
     lattice symmetries averaged (None: the checkpoint's own count). ``subvoxel``: also the checkpoint's own
     output (its union and gate) placed off the lattice with these strengths (:func:`subvoxel_row`)."""
+    from core.rmap_paper import TABLE_III
     from sources.mapset import read_index, read_map_set
     from stages.complete.maps import map_split
-    from stages.evaluate.rmap_paper import TABLE_III
 
     sp = map_split(read_index(root))
     scenes = sp.test if split == "test" else sp.val if split == "val" else sp.train
@@ -199,7 +199,7 @@ def write_union(checkpoint: Path, table: dict[str, Any]) -> bool:
 #: the gates tried by :data:`GATE_RULE`: 0 (the plain union), 0.01 to 0.04 (where CD-l2 changes fastest on the
 #: validation scenes), then 0.05 to 0.5 (the shipped threshold) in steps of 0.05
 GATES = (0.0, 0.01, 0.02, 0.03, 0.04, *(round(0.05 * i, 2) for i in range(1, 11)))
-#: the rule, written at stop 36 before any gated union was scored on a test scene: the union rule above over a
+#: the rule, written before any gated union was scored on a test scene: the union rule above over a
 #: family of unions. Of the gates that pass it, the lowest (most radar voxels kept, for CD-l2); gate 0 is UNION_RULE
 GATE_RULE = ("the lowest gate g (0, 0.01, ..., 0.04, 0.05, 0.10, ..., the threshold) whose union (model voxels + "
              "pre-filtered radar voxels "
@@ -259,7 +259,7 @@ def to_markdown(table: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m stages.complete.voxel_table3", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m experiments.rmap_voxel_table3", description=__doc__.splitlines()[0])
     ap.add_argument("--maps", type=Path, required=True)
     ap.add_argument("--split", choices=("test", "val"), default="test")
     ap.add_argument("--checkpoint", type=Path, default=None)

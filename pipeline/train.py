@@ -21,11 +21,11 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from core.errors import UserError
+from core.paths import PROJECT_ROOT
+from core.stage import Stage
 from pipeline.config import Overrides, Workflow, merge_overrides
-from pipeline.errors import UserError
-from pipeline.paths import PROJECT_ROOT
 from pipeline.sequences import SequenceInfo, expand_sequences, load_registry
-from pipeline.stage import Stage
 from stages.complete.data import Patch, read_patches, split_by_sequence
 
 

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from stages.ingest.geometry import wrap_angle
+from core.geometry import wrap_angle
 
 F64 = npt.NDArray[np.float64]
 
