@@ -142,8 +142,8 @@ def _voxel_results(quick: bool) -> list[Result]:
                   "memory reused as in predict_tiles; ratio = seconds per tile / seconds per torch.mm")]
     root = Path(os.environ.get("RMAP_ROOT", "../shared/data/coloradar_maps"))
     if not quick and path.exists() and (root / "index.json").is_file():
-        from stages.complete.voxel_grid import Band
         from experiments.rmap_voxel_table3 import PAPER_SECONDS, mm_gflops, output_row, run_table
+        from stages.complete.voxel_grid import Band
 
         threads = torch.get_num_threads()
         torch.set_num_threads(INFERENCE_THREADS)  # the target's 2 cores

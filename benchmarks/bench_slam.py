@@ -29,8 +29,9 @@ import numpy as np
 from benchmarks.common import Result, best_time
 from core import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, sample_beams
-from stages.slam.methods import SlamConfig, choose_form, make_hilbert_maps, step_flops
+from stages.slam.methods import NOISE, choose_form, make_hilbert_maps, step_flops, weighting
 from stages.slam.parallel import ParallelHilbertMaps
+from stages.slam.params import MapParams, SlamParams
 from stages.slam.rbpf import RBPF, odometry_increments
 from stages.slam.synthetic import make_run
 
@@ -50,7 +51,7 @@ def _scans(beams: int, steps: int) -> tuple[Any, list[BeamSamples]]:
     return run, [sample_beams(s, [0.0, 0.0], 1.0, 5.0) for s in run.scans]
 
 
-def _time_filter(cfg: SlamConfig, beams: int, steps: int, M: int) -> dict[str, Any]:
+def _time_filter(cfg: SlamParams, beams: int, steps: int, M: int) -> dict[str, Any]:
     """Seconds per step over ``steps`` scans after 3 warm-up steps (median, and mean with the
     resampling steps' map copies: the sustained rate), and the modelled flops."""
     run, scans = _scans(beams, steps)
@@ -60,7 +61,7 @@ def _time_filter(cfg: SlamConfig, beams: int, steps: int, M: int) -> dict[str, A
     u = odometry_increments(run.odometry)
     times = []
     try:
-        f = RBPF(maps, run.odometry[0], cfg.n_particles, cfg.noise, np.random.default_rng(0))
+        f = RBPF(maps, run.odometry[0], cfg.n_particles, NOISE, np.random.default_rng(0))
         for i, s in enumerate(scans):
             t0 = time.perf_counter()
             f.step(u[i], s, first=i == 0)
@@ -71,7 +72,7 @@ def _time_filter(cfg: SlamConfig, beams: int, steps: int, M: int) -> dict[str, A
             maps.close()
     n = float(np.mean([s.n for s in scans[3:]]))
     b = float(np.mean([len(s.endpoints) for s in scans[3:]]))
-    flops = cfg.n_particles * step_flops(form, n, b, M, cfg.weighting("rich_slam"))
+    flops = cfg.n_particles * step_flops(form, n, b, M, weighting(cfg, "rich_slam"))
     sec, mean = float(np.median(times)), float(np.mean(times))
     return {"sec": sec, "mean": mean, "gflops": flops / sec / 1e9, "flops": flops, "n": n, "b": b, "form": form}
 
@@ -82,7 +83,7 @@ def _torch_cpu(beams: int, steps: int, threads: tuple[int, ...]) -> dict[int, di
         from benchmarks.slam_torch import time_torch_filter
     except ImportError:
         return {}
-    return {n: time_torch_filter(SlamConfig(torch_threads=n), beams, steps, 256, "cpu") for n in threads}
+    return {n: time_torch_filter(SlamParams(), beams, steps, 256, "cpu", threads=n) for n in threads}
 
 
 def _float32_accuracy(beams: int, steps: int, form: str = "covariance") -> float:
@@ -96,7 +97,7 @@ def _float32_accuracy(beams: int, steps: int, form: str = "covariance") -> float
     for i in range(1, len(scans)):
         poses.append(poses[-1] + u[i] + rng.normal(0, [0.02, 0.02, 0.005], (50, 3)))
     worst = 0.0
-    maps = {dt: make_hilbert_maps(SlamConfig(dtype=dt, workers=0), basis, "rich_slam", 50, form)  # type: ignore[arg-type]
+    maps = {dt: make_hilbert_maps(SlamParams(map=MapParams(dtype=dt), workers=0), basis, "rich_slam", 50, form)  # type: ignore[arg-type]
             for dt in ("float64", "float32")}
     for p, s in zip(poses, scans, strict=True):
         ll = {dt: m.log_likelihood(p, s) for dt, m in maps.items()}
@@ -111,7 +112,7 @@ def run(quick: bool = False) -> list[Result]:
     size = 1024 if quick else 2048
     ref0 = _matmul_rate(size)
     steps = 8 if quick else 30
-    cfg = SlamConfig()
+    cfg = SlamParams()
     densities = (("sparse", 6), ("medium", 30), ("dense", 80))
     main, torch_rows = [], []
     for label, beams in densities:  # interleaved, the machine may be shared
@@ -134,17 +135,17 @@ def run(quick: bool = False) -> list[Result]:
                               "10 Hz frame (0.1 s)", FRAME_S / t["mean"], "",
                               f"{t['form']} form; numpy (2 workers) {r['mean']:.3f} s/scan in the same run: torch / "
                               f"numpy = {t['mean'] / r['mean']:.2f}; {t['gflops']:.1f} GFLOP/s"))
-    r0 = _time_filter(SlamConfig(workers=0), 6, steps, 256)
+    r0 = _time_filter(SlamParams(workers=0), 6, steps, 256)
     out.append(Result(AREA, "step Np=200 M=256 sparse, in process", r0["mean"], "s/scan", "10 Hz frame (0.1 s)",
                       FRAME_S / r0["mean"], "", f"{r0['form']} form, all BLAS threads, no workers"))
     for label, beams in densities:
-        r32 = _time_filter(SlamConfig(dtype="float32"), beams, steps, 256)
+        r32 = _time_filter(SlamParams(map=MapParams(dtype="float32")), beams, steps, 256)
         err = _float32_accuracy(beams, 12 if quick else 40, r32["form"])
         out.append(Result(AREA, f"step Np=200 M=256 {label} float32", r32["mean"], "s/scan", "10 Hz frame (0.1 s)",
                           FRAME_S / r32["mean"], "", f"{r32['form']} form; max |dlog-lik| / particle spread "
                           f"vs float64: {err:.2g}"))
     for Np in ((50, 400) if quick else (50, 100, 400)):
-        r = _time_filter(SlamConfig(n_particles=Np), 30, steps, 256)
+        r = _time_filter(SlamParams(n_particles=Np), 30, steps, 256)
         out.append(Result(AREA, f"scaling Np={Np} M=256 medium", r["mean"], "s/scan", "10 Hz frame (0.1 s)",
                           FRAME_S / r["mean"], "", f"{r['gflops']:.1f} GFLOP/s, {r['form']}"))
     for M in ((64, 400) if quick else (64, 144, 400, 576)):

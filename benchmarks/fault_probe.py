@@ -242,7 +242,7 @@ def _bool(lab: Lab) -> None:
 
 @probe("params: a run that cannot fit in memory is refused before it starts")
 def _memory(lab: Lab) -> None:
-    r = _src(lab, lab.radar_imu, "--set", "slam.n_particles=100000", "--set", "slam.n_basis=4096", stage="slam")
+    r = _src(lab, lab.radar_imu, "--set", "slam.n_particles=100000", "--set", "slam.map.n_basis=4096", stage="slam")
     lab.expect(r, 2, "of memory", "slam.n_particles=100000")
 
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from benchmarks.slam_torch import DENSITIES, time_torch_filter
-from stages.slam.methods import SlamConfig
+from stages.slam.params import MapParams, SlamParams
 
 FRAME_S = 0.1
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -93,7 +93,7 @@ def main(argv: list[str]) -> int:
         for Np in particles:
             for M in sizes:
                 for label, beams in DENSITIES:
-                    cfg = SlamConfig(n_particles=Np, dtype=dt)  # type: ignore[arg-type]
+                    cfg = SlamParams(n_particles=Np, map=MapParams(dtype=dt))
                     try:
                         r = time_torch_filter(cfg, beams, steps, M, args.device, warmup=2, form=args.form,
                                               budget_s=args.budget)

@@ -17,7 +17,8 @@ import torch
 
 from core import hilbert_map as hm
 from stages.slam.beam_sampling import BeamSamples, sample_beams
-from stages.slam.methods import SlamConfig, choose_form, step_flops
+from stages.slam.methods import NOISE, TORCH_THREADS, choose_form, map_model, step_flops, weighting
+from stages.slam.params import SlamParams
 from stages.slam.rbpf import odometry_increments
 from stages.slam.synthetic import make_run
 from stages.slam.torch_filter import TorchRBPF, cpu_threads
@@ -37,20 +38,21 @@ def sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def time_torch_filter(cfg: SlamConfig, beams: int, steps: int, M: int, device: str, warmup: int = 3,
-                      form: str = "auto", budget_s: float | None = None) -> dict[str, Any]:
+def time_torch_filter(cfg: SlamParams, beams: int, steps: int, M: int, device: str, warmup: int = 3,
+                      form: str = "auto", budget_s: float | None = None, threads: int = TORCH_THREADS
+                      ) -> dict[str, Any]:
     """Seconds per step of the torch filter over ``steps`` scans after ``warmup`` (fewer timed steps when
-    ``budget_s`` would be exceeded, at least 3), with the modelled flops."""
+    ``budget_s`` would be exceeded, at least 3) with ``threads`` CPU threads, with the modelled flops."""
     run, scans = corridor_scans(beams, steps + warmup)
     basis = hm.make_basis([20.0, 16.0], [0.0, 0.0], M)
     chosen = choose_form(cfg, "rich_slam", scans, M) if form == "auto" else form
-    maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.map_model("rich_slam", chosen),  # type: ignore[arg-type]
+    maps = TorchHilbertMaps(basis, cfg.n_particles, map_model(cfg, "rich_slam", chosen),  # type: ignore[arg-type]
                             device=device)
     u = odometry_increments(run.odometry)
     dev = torch.device(device)
     times: list[float] = []
-    with cpu_threads(cfg.torch_threads if dev.type == "cpu" else 0):
-        f = TorchRBPF(maps, run.odometry[0], cfg.n_particles, cfg.noise, np.random.default_rng(0))
+    with cpu_threads(threads if dev.type == "cpu" else 0):
+        f = TorchRBPF(maps, run.odometry[0], cfg.n_particles, NOISE, np.random.default_rng(0))
         t_start = time.perf_counter()
         for i, s in enumerate(scans):
             sync(dev)
@@ -64,7 +66,7 @@ def time_torch_filter(cfg: SlamConfig, beams: int, steps: int, M: int, device: s
     used = scans[warmup : warmup + len(times)]
     n = float(np.mean([s.n for s in used]))
     b = float(np.mean([len(s.endpoints) for s in used]))
-    flops = cfg.n_particles * step_flops(chosen, n, b, M, cfg.weighting("rich_slam"))
+    flops = cfg.n_particles * step_flops(chosen, n, b, M, weighting(cfg, "rich_slam"))
     sec, mean = float(np.median(times)), float(np.mean(times))
     del f, maps
     return {"sec": sec, "mean": mean, "gflops": flops / sec / 1e9, "flops": flops, "n": n, "b": b, "form": chosen,

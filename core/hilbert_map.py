@@ -20,6 +20,9 @@ import numpy.typing as npt
 FloatArray = npt.NDArray[np.floating]
 BasisKind = Literal["tensor", "circular"]
 
+#: the map's domain: the trajectory's envelope padded by this (m)
+DOMAIN_PADDING = 10.0
+
 
 @dataclass(frozen=True)
 class HilbertBasis:

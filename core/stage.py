@@ -94,16 +94,59 @@ class StageParams(BaseModel):
         return data
 
 
-def bool_for_number(model: type[BaseModel], data: Any) -> str | None:
-    """The first field of ``model`` that ``data`` gives a bool although the field takes only numbers."""
+def bool_for_number(model: type[BaseModel] | Mapping[str, Any], data: Any) -> str | None:
+    """The first field of ``model`` (a model, or ``{name: FieldInfo}``) that ``data`` gives a bool although the
+    field takes only numbers."""
     if not isinstance(data, dict):
         return None
+    fields = model if isinstance(model, Mapping) else model.model_fields
     for name, value in data.items():
-        info = model.model_fields.get(name)
+        info = fields.get(name)
         if (isinstance(value, bool) and info is not None and _takes_number(info.annotation)
                 and not _takes_bool(info.annotation)):
             return str(name)
     return None
+
+
+class ParamGroup(StageParams):
+    """A nested group of a stage's parameters, addressed with a dot (``slam.graph.loop_radius``, ``[slam.graph]``
+    in TOML), as KISS-ICP groups its config."""
+
+
+def param_fields(model: type[BaseModel], prefix: str = "") -> dict[str, Any]:
+    """``{dotted name: FieldInfo}`` of every leaf parameter of ``model``, its groups' included."""
+    out: dict[str, Any] = {}
+    for name, info in model.model_fields.items():
+        group = info.annotation
+        if isinstance(group, type) and issubclass(group, ParamGroup):
+            out.update(param_fields(group, f"{prefix}{name}."))
+        else:
+            out[f"{prefix}{name}"] = info
+    return out
+
+
+def flatten_params(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested tables (``{"graph": {"loop_radius": 3}}``) as dotted names (``{"graph.loop_radius": 3}``), so that
+    layers merge name by name. No stage parameter takes a table, so every mapping is a group."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        if isinstance(value, Mapping):
+            out.update(flatten_params(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def nest_params(flat: Mapping[str, Any]) -> dict[str, Any]:
+    """The inverse of :func:`flatten_params`: dotted names as nested tables, for ``model_validate``."""
+    out: dict[str, Any] = {}
+    for key, value in flat.items():
+        *groups, leaf = key.split(".")
+        node = out
+        for g in groups:
+            node = node.setdefault(g, {})
+        node[leaf] = value
+    return out
 
 
 class Stage(ABC):
@@ -153,7 +196,7 @@ class Stage(ABC):
     def memory_estimate(self, seq: SequenceInfo, params: StageParams,
                         input_dirs: Mapping[str, Path]) -> tuple[int, str] | None:
         """Peak bytes the stage will hold for these parameters and finished inputs, with the parameters that set
-        it (``"slam.n_particles=200 x slam.n_basis=256^2"``); None when it is small or not modelled. The runner
+        it (``"slam.n_particles=200 x slam.map.n_basis=256^2"``); None when it is small or not modelled. The runner
         refuses a run whose estimate exceeds the memory available, before it starts."""
         return None
 

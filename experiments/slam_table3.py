@@ -37,6 +37,7 @@ import numpy as np
 import numpy.typing as npt
 
 from core import hilbert_map as hm
+from core.stage import flatten_params, nest_params
 from experiments.slam_unit_study import read_run_folder
 from stages.evaluate.rich_slam_paper import (
     COUNTERPART,
@@ -47,9 +48,11 @@ from stages.evaluate.rich_slam_paper import (
 )
 from stages.evaluate.trajectory import anchored_errors, evaluate_trajectory, evaluate_trajectory_whole, quat_to_yaw
 from stages.slam.beam_sampling import BeamSamples
-from stages.slam.methods import GRAPH_METHODS, METHODS, MethodResult, domain_from_trajectory, run_method
+from stages.slam.method_names import GRAPH_METHODS, METHODS
+from stages.slam.methods import DOMAIN_PADDING, MethodResult, domain_from_trajectory, run_method
+from stages.slam.params import SlamParams
 from stages.slam.pose_graph import optimise_graph
-from stages.slam.stage import SlamParams, beam_samples_by_scan, graph_endpoints_by_scan, read_odometry_file
+from stages.slam.stage import beam_samples_by_scan, graph_endpoints_by_scan, read_odometry_file
 
 F64 = npt.NDArray[np.floating[Any]]
 
@@ -127,19 +130,24 @@ def done_keys(out: Path) -> set[tuple[str, str, int, str]]:
     return {(r["seq"], r["method"], int(r["seed"]), r.get("config", "")) for r in rows}
 
 
+def default_params() -> dict[str, Any]:
+    """The slam stage's defaults under their dotted names (``graph.bias_walk``), as rows' configs name them."""
+    return flatten_params(SlamParams().model_dump())
+
+
 #: slam parameters that change how a run executes, not what it computes (left out when rows are compared)
 EXECUTION_KEYS = ("workers", "device", "torch_threads")
 
 
 def config_key(config: str, defaults: dict[str, Any] | None = None) -> str:
     """A row's ``config`` reduced to what sets its numbers: execution-only keys (:data:`EXECUTION_KEYS`) and
-    values equal to the stage's current defaults (``defaults``: ``SlamParams().model_dump()`` when not given)
+    values equal to the stage's current defaults (``defaults``: :func:`default_params` when not given)
     are dropped, so ``{"n_particles": 200, "workers": 0}`` and ``{"workers": 2}`` are one configuration. (A row
     written under an older default cannot be told apart from one under today's: its file's name and the README
     say which stop wrote it.)"""
     given = json.loads(config) if config else {}
     if defaults is None:
-        defaults = SlamParams().model_dump()
+        defaults = default_params()
     kept = {k: v for k, v in given.items() if k not in EXECUTION_KEYS and (k not in defaults or defaults[k] != v)}
     return json.dumps(kept, sort_keys=True)
 
@@ -156,10 +164,10 @@ def read_rows(paths: Sequence[Path], by_config: bool = False) -> tuple[list[dict
     file are dropped where a later file has that cell in another configuration (:func:`config_key`: a default
     changed between them); a cell whose rows in one file were made with different configurations is refused,
     naming both, since its mean would mix them; with ``by_config`` each configuration is a method of its own
-    instead (``"radar_graph {\"graph_bias_walk\": 0.001}"``; the defaults' is the bare method). Returns the rows
+    instead (``"radar_graph {\"graph.bias_walk\": 0.001}"``; the defaults' is the bare method). Returns the rows
     and notes (replacements, dropped rows). Raises ``ValueError`` with the file and line for a line that is not
     a JSON row."""
-    defaults = SlamParams().model_dump()
+    defaults = default_params()
     # per file: (seq, method, seed), the row, its file:line and its configuration (config_key; "" for odometry)
     per_file: list[list[tuple[tuple[str, str, int], dict[str, Any], str, str]]] = []
     odometry: dict[tuple[int, str], tuple[float, ...]] = {}  # (file, seq) -> the odometry's errors there
@@ -241,7 +249,7 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
         out: Path, keep: Path | None = None) -> None:
     """Append a row per (run, method, seed) not yet in ``out``; ``keep``: also save each row's trajectory there
     (:func:`save_trajectory`)."""
-    p = SlamParams(**overrides)
+    p = SlamParams.model_validate(nest_params(overrides))
     config = json.dumps(overrides, sort_keys=True)
     done = done_keys(out)
     for run_dir in runs:
@@ -249,9 +257,8 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
         if not todo:
             continue
         t_ns, odo, samples, truth, inc_cov = load_inputs(run_dir, p)
-        half, centre = domain_from_trajectory(odo[:, :2], p.domain_padding)
-        basis = hm.make_basis(half, centre, p.n_basis, "tensor")
-        cfg = p.config()
+        half, centre = domain_from_trajectory(odo[:, :2], DOMAIN_PADDING)
+        basis = hm.make_basis(half, centre, p.map.n_basis, "tensor")
         anchored = groundtruth_anchored(run_dir)
         for m, s in todo:
             t0 = time.perf_counter()
@@ -259,7 +266,7 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
             if m in GRAPH_METHODS:
                 res, graph_counts = run_graph_method(run_dir, p, t_ns, odo, inc_cov)
             else:
-                res = run_method(m, odo, samples, basis, cfg, s)
+                res = run_method(m, odo, samples, basis, p.model_copy(update={"seed": s}))
             seconds = time.perf_counter() - t0
             est = np.asarray(res.poses, np.float64)
             row = {"seq": run_dir.name, "method": m, "seed": s, "config": config,
@@ -276,13 +283,13 @@ def run(runs: Sequence[Path], methods: Sequence[str], seeds: Sequence[int], over
 
 def run_graph_method(run_dir: Path, p: SlamParams, t_ns: npt.NDArray[np.int64], odo: F64,
                      inc_cov: F64) -> tuple[MethodResult, dict[str, int]]:
-    """radar_graph on a run folder, as the slam stage runs it (endpoints to ``graph_max_range``): its result and
+    """radar_graph on a run folder, as the slam stage runs it (endpoints to ``graph.max_range``): its result and
     the loop-closure counts of the row."""
     _, calib, radar = read_run_folder(run_dir)
     scans = read_odometry_file(run_dir / "odometry" / "odometry.parquet", run_dir.name)[0]
     xyz = np.stack([radar[c].to_numpy().astype(np.float64) for c in ("x", "y", "z")], 1)
     endpoints = graph_endpoints_by_scan(radar["scan"].to_numpy().astype(np.int64), xyz, scans, calib, p)
-    g = optimise_graph(odo, inc_cov, (t_ns - t_ns[0]) * 1e-9, endpoints, p.graph_model())
+    g = optimise_graph(odo, inc_cov, (t_ns - t_ns[0]) * 1e-9, endpoints, p.graph)
     counts = {"keyframes": len(g.keyframes), "loops_proposed": g.count("loop"),
               "loops_accepted": g.count("loop", True), "loops_rejected": g.count("loop", False)}
     return MethodResult("radar_graph", g.poses, np.ones(len(g.poses)), 0.0), counts

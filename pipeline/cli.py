@@ -244,17 +244,31 @@ def status(
 
 
 @app.command()
-def sequences() -> None:
+def sequences(
+    split: Annotated[str | None, typer.Option("--split", help="only the map sequences of this RMap split "
+                                              "(test: the Table III scenes, train)")] = None,
+    present: Annotated[bool, typer.Option("--present", help="only sequences whose data is present")] = False,
+    names: Annotated[bool, typer.Option("--names", help="print the names only, comma-separated (for --seq)")]
+    = False,
+) -> None:
     """Registered sequences, where their data is expected, and whether it is present."""
     rows = []
-    for info in load_registry().values():
+    chosen = [info for info in load_registry().values()
+              if (split is None or info.split == split) and (not present or info.locate())]
+    if split is not None and not chosen:
+        raise UserError(f"--split {split}: no registered sequence has that split; map sequences have test or "
+                        f"train (set RMAP_ROOT to the map set)")
+    if names:
+        print(",".join(info.name for info in chosen), flush=True)
+        return
+    for info in chosen:
         found = info.locate()
         where = info.where()
         if info.kind == "simulated":
-            present = "[green]yes[/]" if found else "[dim]generated on first use[/]"
+            state = "[green]yes[/]" if found else "[dim]generated on first use[/]"
         else:
-            present = "[green]yes[/]" if found else "[red]no[/]"
-        rows.append([escape(info.name), escape(info.kind), escape(where), present,
+            state = "[green]yes[/]" if found else "[red]no[/]"
+        rows.append([escape(info.name), escape(info.kind), escape(where), state,
                      escape(info.description or (info.run or ""))])
     columns = [Column("name", keep=True), Column("kind"), Column("data", keep=True), Column("present"),
                Column("description")]
@@ -264,9 +278,12 @@ def sequences() -> None:
 @app.command()
 def params(stage: Annotated[str | None, typer.Argument(help="a stage name (default: all)")] = None,
            workflow: WorkflowOpt = "default",
+           seqs: Annotated[list[str] | None, typer.Option(
+               "--seq", "-s", help="show the values this sequence runs with, and the layer that set each")] = None,
+           set_: SetOpt = None,
            full: Annotated[bool, typer.Option("--full", help="whole descriptions (default: their first clause)")]
            = False) -> None:
-    """List stage parameters, their types, defaults and the workflow's values."""
+    """List stage parameters, their types, defaults and the workflow's values (with --seq: the effective ones)."""
     registry = load_stages()
     wf = load_workflow(workflow)
     names = [stage] if stage else list(registry)
@@ -275,6 +292,26 @@ def params(stage: Annotated[str | None, typer.Argument(help="a stage name (defau
             from pipeline.config import did_you_mean
 
             raise UserError(f"unknown stage '{name}'{did_you_mean(name, registry)}")
+    if seqs:
+        from pipeline.config import effective_params
+        from pipeline.sequences import get_sequence, kind_defaults
+
+        if len(seqs) != 1 or "," in seqs[0]:
+            raise UserError("params --seq takes one sequence name")
+        info = get_sequence(seqs[0])
+        overrides = parse_set(set_ or [], registry)
+        for name in names:
+            layers = [(f"workflow {wf.name}", wf.params.get(name, {})),
+                      (f"{info.kind} sequences (data/kinds.toml)", kind_defaults(info.kind).get(name, {})),
+                      (f"sequence {info.name} (data/sequences.toml)", info.params.get(name, {})),
+                      ("--set", overrides.get(name, {}))]
+            rows = [[escape(f"{name}.{pname}"), escape(repr(value)), escape(layer),
+                     escape(desc if full else brief(desc))]
+                    for pname, value, layer, desc in effective_params(registry[name], layers)]
+            columns = [Column("parameter", keep=True), Column("value"), Column("set by"), Column("description")]
+            print_listing(out, f"{name} on {info.name}: {registry[name].description}", columns, rows)
+        return
+    for name in names:
         rows = []
         for pname, typ, default, desc in describe_params(registry[name]):
             wval = wf.params.get(name, {}).get(pname, "")

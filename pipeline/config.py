@@ -17,7 +17,7 @@ from pydantic import ValidationError
 
 from core.errors import UserError
 from core.paths import workflows_dir
-from core.stage import Stage, StageParams, bool_for_number
+from core.stage import Stage, StageParams, bool_for_number, flatten_params, nest_params, param_fields
 
 Overrides = dict[str, dict[str, Any]]
 
@@ -48,10 +48,12 @@ def _load_toml(path: Path) -> dict[str, Any]:
 
 
 def merge_overrides(*layers: Mapping[str, Mapping[str, Any]]) -> Overrides:
+    """Later layers win, parameter by parameter (groups flattened to dotted names, so ``[slam.graph]`` in one
+    layer and ``--set slam.graph.loop_radius=...`` in another combine)."""
     out: Overrides = {}
     for layer in layers:
         for stage, values in layer.items():
-            out.setdefault(stage, {}).update(values)
+            out.setdefault(stage, {}).update(flatten_params(values))
     return out
 
 
@@ -119,10 +121,11 @@ def parameter_listing(stage: str, names: Sequence[str]) -> str:
 
 
 def check_param_names(stage: str, values: Mapping[str, Any], registry: Mapping[str, Stage], source: str) -> None:
-    fields = registry[stage].Params.model_fields
-    for param in values:
+    fields = param_fields(registry[stage].Params)
+    for param in flatten_params(values):
         if param not in fields:
-            close = difflib.get_close_matches(param, list(fields), n=1, cutoff=0.6)
+            in_group = [f for f in fields if f.endswith(f".{param}")]
+            close = in_group if len(in_group) == 1 else difflib.get_close_matches(param, list(fields), n=1, cutoff=0.6)
             hint = f"; did you mean '{stage}.{close[0]}'?" if close else ""
             listing = "" if hint else f" ({parameter_listing(stage, list(fields))})"
             raise UserError(f"{source}: unknown parameter '{stage}.{param}'{hint}{listing}")
@@ -130,28 +133,40 @@ def check_param_names(stage: str, values: Mapping[str, Any], registry: Mapping[s
 
 def build_params(stage: Stage, layers: Sequence[tuple[str, Mapping[str, Any]]]) -> StageParams:
     """Validate the merged parameter layers into the stage's model; errors name the parameter."""
+    flat_layers = [(source, flatten_params(values)) for source, values in layers]
     merged: dict[str, Any] = {}
-    for _source, values in layers:
+    for _source, values in flat_layers:
         merged.update(values)
-    flagged = bool_for_number(stage.Params, merged)
+    flagged = bool_for_number(param_fields(stage.Params), merged)
     if flagged is not None:
-        source = next((s for s, v in reversed(layers) if flagged in v), "defaults")
+        source = next((s for s, v in reversed(flat_layers) if flagged in v), "defaults")
         raise UserError(f"{source}: {stage.name}.{flagged}={str(merged[flagged]).lower()}: a bool where a number is "
                         f"expected; give a number")
     try:
-        return stage.Params.model_validate(merged)
+        return stage.Params.model_validate(nest_params(merged))
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ".".join(str(p) for p in err["loc"])
-        source = next((s for s, v in reversed(layers) if err["loc"] and err["loc"][0] in v), "defaults")
-        value = merged.get(str(err["loc"][0])) if err["loc"] else None
+        source = next((s for s, v in reversed(flat_layers) if any(k == loc or k.startswith(f"{loc}.") or
+                                                                   loc.startswith(f"{k}.") for k in v)), "defaults")
+        value = merged.get(loc, {k: v for k, v in merged.items() if k.startswith(f"{loc}.")} or None)
         raise UserError(f"{source}: {stage.name}.{loc}={value!r}: {err['msg']}") from None
 
 
 def describe_params(stage: Stage) -> list[tuple[str, str, Any, str]]:
     """(name, type, default, description) for ``pipeline params``."""
     rows = []
-    for name, f in stage.Params.model_fields.items():
+    for name, f in param_fields(stage.Params).items():
         ann = getattr(f.annotation, "__name__", str(f.annotation))
         rows.append((name, ann, f.default, f.description or ""))
     return rows
+
+
+def effective_params(stage: Stage, layers: Sequence[tuple[str, Mapping[str, Any]]]) -> list[tuple[str, Any, str, str]]:
+    """(name, value, the layer that set it or ``default``, description) of every parameter, after validating the
+    layers as a run does (so an invalid value is the run's error)."""
+    params = build_params(stage, layers).model_dump(mode="json")
+    flat = flatten_params(params)
+    set_by = {k: source for source, values in layers for k in flatten_params(values)}
+    return [(name, flat.get(name), set_by.get(name, "default"), info.description or "")
+            for name, info in param_fields(stage.Params).items()]

@@ -106,7 +106,7 @@ class Runner:
 
     @property
     def kind_params(self) -> Overrides:
-        """Parameters every sequence of this source kind starts from (``sources.DEFAULT_PARAMS``), for the
+        """Parameters every sequence of this source kind starts from (``data/kinds.toml``), for the
         stages of this registry."""
         from pipeline.sequences import kind_defaults
 

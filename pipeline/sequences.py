@@ -24,6 +24,7 @@ import tomllib
 import sources
 from core.errors import UserError
 from core.paths import data_dir
+from core.stage import flatten_params
 from sources import mapset, recorded, simulated
 
 KINDS = tuple(sources.PROVIDES)
@@ -163,14 +164,23 @@ def load_registry(path: Path | None = None) -> dict[str, SequenceInfo]:
             raise UserError(f"{path}: sequence '{name}' has kind {kind!r}; use one of {', '.join(KINDS)}")
         if kind == "rmap" and not table.get("scene"):
             raise UserError(f"{path}: map sequence '{name}' needs scene = \"<scene>\" (e.g. arpg_lab_run0)")
+        table["params"] = {stage: flatten_params(values) for stage, values in table.get("params", {}).items()}
         out[name] = SequenceInfo(name=name, **table)
     return out
 
 
-def kind_defaults(kind: str) -> dict[str, dict[str, Any]]:
-    """Parameters every sequence of ``kind`` starts from (``sources.DEFAULT_PARAMS``); the runner layers them
-    above the workflow's and below the sequence's own ``params`` and ``--set``."""
-    return {stage: dict(values) for stage, values in sources.DEFAULT_PARAMS.get(kind, {}).items()}
+def kind_defaults(kind: str, path: Path | None = None) -> dict[str, dict[str, Any]]:
+    """Parameters every sequence of ``kind`` starts from (``data/kinds.toml``); the runner layers them above the
+    workflow's and below the sequence's own ``params`` and ``--set``."""
+    path = path or data_dir() / "kinds.toml"
+    try:
+        with path.open("rb") as f:
+            table = tomllib.load(f)
+    except FileNotFoundError:
+        return {}
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{path}: not valid TOML ({exc}); fix the file") from None
+    return {stage: flatten_params(values) for stage, values in table.get(kind, {}).items()}
 
 
 def get_sequence(name: str, registry: dict[str, SequenceInfo] | None = None) -> SequenceInfo:

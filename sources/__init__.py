@@ -15,8 +15,6 @@ layer but :mod:`core.errors` and :mod:`core.paths`.
 
 from __future__ import annotations
 
-from typing import Any
-
 #: sequence kinds and what their data provides
 PROVIDES: dict[str, frozenset[str]] = {
     "simulated": frozenset({"log"}),
@@ -32,20 +30,6 @@ LABELS: dict[str, str] = {
     "source": "recorded log",
     "rmap": "published map set",
 }
-
-#: the completion model of real data: the voxel U-Net, trained on the real ColoRadar maps, is better than the
-#: real-trained UpPoinTr on every Table III Overall metric of the 18 test scenes (docs/rmap.md); simulated
-#: sequences keep the paper's UpPoinTr (the stage's own default; docs/radar_only.md, the twins)
-_REAL_COMPLETION: dict[str, Any] = {"model": "voxel"}
-
-#: parameters every sequence of a kind starts from (below the sequence's own ``params`` and ``--set``)
-DEFAULT_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
-    # map sets enter at the voxel stage's outputs; only the map metrics can be computed
-    "rmap": {"voxel": {"maps": "import"}, "evaluate": {"sections": ["rmap"]}, "complete": dict(_REAL_COMPLETION)},
-    "coloradar": {"complete": dict(_REAL_COMPLETION)},
-    "source": {"complete": dict(_REAL_COMPLETION)},
-}
-
 
 def provides(kind: str) -> frozenset[str]:
     """What data a sequence of ``kind`` provides (``log`` / ``maps``)."""

@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SEQ = "clirun"
 #: a short run: 6 s of the demo world, slam with few particles, the default method (the README compares it) and
 #: one filter (long enough at 400 particles to be interrupted)
-SLAM = ["--set", "slam.n_particles=5", "--set", "slam.n_basis=64",
+SLAM = ["--set", "slam.n_particles=5", "--set", "slam.map.n_basis=64",
         "--set", 'slam.methods=["odometry","radar_graph","rich_slam"]']
 
 

@@ -184,8 +184,8 @@ def test_shipped_real_checkpoint_loads() -> None:
 
 def test_map_table_scores_input_and_completed(tmp_path: Path) -> None:
     from core.map_metrics import map_metrics
-    from stages.complete.checkpoint import CheckpointMeta, save_checkpoint
     from experiments.rmap_uppointr_table import evaluate_scenes, overall, render
+    from stages.complete.checkpoint import CheckpointMeta, save_checkpoint
     from stages.complete.model import UpPoinTr
 
     maps = tmp_path / "maps"

@@ -40,7 +40,9 @@ def test_a_long_parameter_list_points_to_the_params_command() -> None:
     from pipeline.registry import load_stages
 
     reg = load_stages()
-    n = len(reg["slam"].Params.model_fields)
+    from core.stage import param_fields
+
+    n = len(param_fields(reg["slam"].Params))
     assert n > LISTED_PARAMETERS
     with pytest.raises(UserError) as err:
         parse_set(["slam.qqqqqqqq=2"], reg)
@@ -92,23 +94,57 @@ def test_shipped_workflows_load_and_name_real_parameters() -> None:
         Runner(SequenceInfo(name="demo", kind="simulated", world="demo"), Path("/tmp/unused"), reg, wf)
 
 
-# Where the default workflow may differ from a stage's own defaults, and why. Everything else it states must be
-# the stage's default: the tables (experiments.slam_table3, benchmarks) run the stage defaults, and `pipeline run all`
-# must run what they measured.
-INTENDED_WORKFLOW_DIFFERENCES: dict[tuple[str, str], str] = {}
+def test_workflows_state_only_what_differs_from_the_stage_defaults() -> None:
+    """A workflow that repeats a default hides where the value is set (and goes stale when the default moves)."""
+    import tomllib
 
-
-def test_the_default_workflow_runs_the_stage_defaults() -> None:
+    from core.paths import workflows_dir
+    from core.stage import flatten_params
     from pipeline.registry import load_stages
 
     registry = load_stages()
-    workflow = load_workflow("default")
-    differences = []
-    for stage, values in workflow.params.items():
-        defaults = registry[stage].Params().model_dump()
-        for name, value in values.items():
-            if (stage, name) not in INTENDED_WORKFLOW_DIFFERENCES and defaults[name] != value:
-                differences.append(f"{stage}.{name}: workflow {value!r}, stage default {defaults[name]!r}")
-    assert differences == []
-    for stage, name in INTENDED_WORKFLOW_DIFFERENCES:  # each exception is still one (else drop it from the list)
-        assert workflow.params[stage][name] != registry[stage].Params().model_dump()[name]
+    repeated = []
+    for path in sorted(workflows_dir().glob("*.toml")):
+        doc = tomllib.loads(path.read_text())
+        for stage, values in doc.items():
+            if stage in ("workflow", "sweep"):
+                continue
+            defaults = flatten_params(registry[stage].Params().model_dump(mode="json"))
+            repeated += [f"{path.name}: {stage}.{k} = {v!r}" for k, v in flatten_params(values).items()
+                         if defaults.get(k) == v]
+    assert repeated == []
+
+
+def test_nested_groups_from_toml_set_and_layers(tmp_path: Path) -> None:
+    """``[slam.graph]`` in a workflow and ``--set slam.graph.x=...`` combine name by name; a bare group member
+    is pointed to its group; a bool is not taken for a number inside a group either."""
+    from pipeline.config import build_params, effective_params, merge_overrides
+    from pipeline.registry import load_stages
+
+    reg = load_stages()
+    wf = tmp_path / "g.toml"
+    wf.write_text('[workflow]\nstages = ["slam"]\n[slam.graph]\nloop_radius = 4.0\nbias_walk = 0.001\n')
+    layers = [("workflow g", load_workflow(str(wf)).params["slam"]),
+              ("--set", parse_set(["slam.graph.loop_radius=5.0"], reg)["slam"])]
+    p = build_params(reg["slam"], layers)
+    assert p.graph.loop_radius == 5.0 and p.graph.bias_walk == 0.001  # type: ignore[attr-defined]
+    assert merge_overrides({"slam": {"graph": {"a": 1}}}, {"slam": {"graph.b": 2}}) == {"slam": {"graph.a": 1,
+                                                                                              "graph.b": 2}}
+    set_by = {name: layer for name, _v, layer, _d in effective_params(reg["slam"], layers)}
+    assert set_by["graph.loop_radius"] == "--set" and set_by["graph.bias_walk"] == "workflow g"
+    assert set_by["n_particles"] == "default"
+    with pytest.raises(UserError, match=r"did you mean 'slam\.graph\.loop_radius'"):
+        parse_set(["slam.loop_radius=3"], reg)
+    with pytest.raises(UserError, match=r"slam\.map\.n_basis=true: a bool"):
+        build_params(reg["slam"], [("--set", {"map.n_basis": True})])
+    with pytest.raises(UserError, match=r"--set: slam\.map\.n_basis=250: .*perfect square"):
+        build_params(reg["slam"], [("--set", {"map.n_basis": 250})])
+
+
+def test_slam_exposes_at_most_thirty_parameters_in_groups() -> None:
+    from core.stage import param_fields
+    from pipeline.registry import load_stages
+
+    names = list(param_fields(load_stages()["slam"].Params))
+    assert len(names) <= 30, names
+    assert {n.split(".")[0] for n in names if "." in n} == {"map", "beams", "graph", "grid"}

@@ -328,10 +328,10 @@ def test_manifest_fallbacks_read_the_slam_parameters(tmp_path: Path) -> None:
     write_synthetic_run(runs, duration=5.0, with_maps=False)
     man = runs / "synth" / "slam" / "manifest.json"
     d = json.loads(man.read_text())
-    d["params"] = {"max_range": 3.0}
+    d["params"] = {"beams": {"max_range": 3.0}}
     man.write_text(json.dumps(d))
     ctx = make_context(runs, "synth", "evaluate", EvaluateParams(), ["slam"], tmp_path / "o")
-    assert Evaluation._slam_params(ctx)["max_range"] == 3.0
+    assert Evaluation._slam_params(ctx)["beams.max_range"] == 3.0
 
 
 def test_each_fit_has_its_own_random_stream() -> None:

@@ -348,7 +348,7 @@ def test_run_all_on_a_map_sequence_skips_the_log_stages(tmp_path: Path) -> None:
     assert val[("radar_map", "cd_l2")] == pytest.approx(1.931, abs=1e-3)
     assert val[("radar_map", "ddist_p95")] == pytest.approx(1.061, abs=1e-3)
     assert val[("lidar_map", "gt_rebuilt")] == 0.0 and val[("completed_map", "patches_a")] == 0.2
-    # real data completes with the voxel U-Net (sources.DEFAULT_PARAMS); UpPoinTr runs beside it (models = auto)
+    # real data completes with the voxel U-Net (data/kinds.toml); UpPoinTr runs beside it (models = auto)
     manifest = json.loads((seq_dir / "complete" / "manifest.json").read_text())
     assert manifest["params"]["model"] == "voxel" and manifest["stats"]["model"] == "voxel"
     assert val[("completed_map", "cd_l2")] == val[("completed_map_voxel", "cd_l2")] != \

@@ -116,7 +116,7 @@ def test_radar_only_workflow_on_a_radar_imu_log_completes_the_map_and_says_what_
     bag = simulator.simulate_to(world="handheld_loop", out=tmp_path / "walk.bag", duration=15.0, seed=5, fmt="bag")
     r = cli("run", "all", "--source", str(bag), "--seq", "walk", "--dataset", "generic", "--runs-dir",
             str(tmp_path / "runs"), "--workflow", "radar_only", "--set", "slam.n_particles=5",
-            "--set", "slam.n_basis=64", "--set", 'slam.methods=["odometry","rich_slam"]')
+            "--set", "slam.map.n_basis=64", "--set", 'slam.methods=["odometry","rich_slam"]')
     assert r.returncode == 0, r.stderr
     seq = tmp_path / "runs" / "walk"
     assert "radar patches only" in r.stderr

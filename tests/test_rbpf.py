@@ -130,9 +130,9 @@ def test_odometry_increments_and_propagation() -> None:
     for i in range(1, 30):
         x = compose(x, u[i])
     np.testing.assert_allclose(x, poses[-1], atol=1e-10)
-    zero = propagate(np.tile(poses[0], (5, 1)), u[1], MotionNoise(0.0, 0.0), rng)
+    zero = propagate(np.tile(poses[0], (5, 1)), u[1], MotionNoise(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), rng)
     np.testing.assert_allclose(zero, np.tile(compose(poses[0], u[1]), (5, 1)), atol=1e-12)
-    noise = MotionNoise(std_xy=0.1, std_yaw=0.02)
+    noise = MotionNoise(std_xy=0.1, std_yaw=0.02, rel_trans=0.0, rel_rot=0.0, rot_per_trans=0.0, trans_per_rot=0.0)
     many = propagate(np.zeros((20000, 3)), [1.0, 0.0, 0.0], noise, rng)
     np.testing.assert_allclose(many.std(axis=0), [0.1, 0.1 * 1.0 + 0.0, 0.02], rtol=0.05, atol=3e-3)
 
@@ -201,7 +201,7 @@ def test_filter_tracks_a_likelihood_and_ancestry_is_consistent() -> None:
     rng = np.random.default_rng(5)
     empty = sample_beams(np.zeros((0, 2)), [0, 0], 1.0, 5.0)
     maps = _FixedMaps(np.array([0.3, 0.0]))
-    f = RBPF(maps, [0.0, 0.0, 0.0], 100, MotionNoise(0.05, 0.01), rng)
+    f = RBPF(maps, [0.0, 0.0, 0.0], 100, MotionNoise(0.05, 0.01, 0.0, 0.0, 0.0, 0.0), rng)
     for i in range(30):
         f.step([0.01, 0.0, 0.0], empty, first=i == 0)
         maps.target = maps.target + np.array([0.01, 0.0])

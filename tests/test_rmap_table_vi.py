@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from core import map_metrics as mm
-from schemas import write_artifact
 from experiments.rmap_table_vi import main
+from schemas import write_artifact
 
 
 def _store(root: Path, a: float, n_patches: int, shift: float) -> None:

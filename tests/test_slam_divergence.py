@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from stages.slam.divergence import heading_deviation
 
@@ -31,16 +32,19 @@ def test_heading_deviation_in_odometry_sigmas() -> None:
     assert heading_deviation(wrapped, est2, cov).degrees < 0.2
 
 
-def test_stage_records_the_deviation_and_warns_past_the_threshold(tmp_path: Path) -> None:
+def test_stage_records_the_deviation_and_warns_past_the_threshold(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    from stages.slam import stage as slam_stage
     from tests.test_slam_stage import _ctx, _run, _write_inputs
 
     inp = _write_inputs(tmp_path / "in", 20)
-    quiet = _ctx(tmp_path / "a", inp["dirs"], n_particles=4, n_basis=36, workers=0, n_map_snapshots=0,
+    quiet = _ctx(tmp_path / "a", inp["dirs"], n_particles=4, map={"n_basis": 36}, workers=0,
                  methods=["odometry", "rich_slam"])
     _run(quiet)
     sig = quiet.stats["methods"]["rich_slam"]["heading_deviation_sigmas"]
     assert 0.0 < sig < 3.0 and not any("heading left" in w for w in quiet.stats.get("warnings", []))
-    loud = _ctx(tmp_path / "b", inp["dirs"], n_particles=4, n_basis=36, workers=0, n_map_snapshots=0,
-                methods=["odometry", "rich_slam"], deviation_warn_sigmas=sig / 2)
+    monkeypatch.setattr(slam_stage, "DEVIATION_WARN_SIGMAS", sig / 2)
+    loud = _ctx(tmp_path / "b", inp["dirs"], n_particles=4, map={"n_basis": 36}, workers=0,
+                methods=["odometry", "rich_slam"])
     _run(loud)
     assert any(w.startswith("rich_slam's heading left the odometry's by") for w in loud.stats["warnings"])

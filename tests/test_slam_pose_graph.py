@@ -7,9 +7,9 @@ import sys
 import numpy as np
 import pytest
 
+from stages.slam.params import GraphParams
 from stages.slam.pose_graph import (
     Edge,
-    GraphModel,
     between,
     compose,
     optimise,
@@ -134,7 +134,7 @@ def test_graph_on_a_drifting_synthetic_loop_beats_its_odometry() -> None:
                    outlier_fraction=0.05)
     t = np.arange(700) * 0.1
     cov = np.broadcast_to(np.diag([1e-4, 1e-4, 1e-6]), (700, 3, 3)).copy()
-    res = optimise_graph(run.odometry, cov, t, run.scans, GraphModel(loop_min_travel=10.0))
+    res = optimise_graph(run.odometry, cov, t, run.scans, GraphParams(loop_min_travel=10.0))
     yaw = lambda p: np.degrees(np.sqrt(np.mean(between(run.groundtruth, p)[:, 2] ** 2)))  # noqa: E731
     assert res.count("loop", True) >= 3
     assert yaw(res.poses) < 0.5 * yaw(run.odometry)
@@ -145,9 +145,9 @@ def test_bad_inputs_are_stated() -> None:
     odo = np.zeros((5, 3))
     cov = np.broadcast_to(np.eye(3) * 1e-4, (5, 3, 3)).copy()
     with pytest.raises(ValueError, match="one keyframe"):
-        optimise_graph(odo, cov, np.arange(5.0), [np.zeros((0, 2))] * 5, GraphModel())
+        optimise_graph(odo, cov, np.arange(5.0), [np.zeros((0, 2))] * 5, GraphParams())
     with pytest.raises(ValueError, match="must agree"):
-        optimise_graph(odo, cov, np.arange(5.0), [np.zeros((0, 2))] * 4, GraphModel())
+        optimise_graph(odo, cov, np.arange(5.0), [np.zeros((0, 2))] * 4, GraphParams())
     path = np.array([[0, 0, 0], [0.5, 0, 0], [1.0, 0, 0], [1.1, 0, 0.3]])
     assert list(select_keyframes(path, 1.0, 15.0)) == [0, 2, 3]
 
@@ -157,4 +157,4 @@ def test_missing_gtsam_names_the_install(monkeypatch: pytest.MonkeyPatch) -> Non
     odo = np.column_stack([np.arange(30) * 0.2, np.zeros(30), np.zeros(30)])
     cov = np.broadcast_to(np.eye(3) * 1e-4, (30, 3, 3)).copy()
     with pytest.raises(ImportError, match="pip install gtsam"):
-        optimise_graph(odo, cov, np.arange(30.0), [np.zeros((0, 2))] * 30, GraphModel())
+        optimise_graph(odo, cov, np.arange(30.0), [np.zeros((0, 2))] * 30, GraphParams())

@@ -82,10 +82,13 @@ def _run(ctx: StageContext) -> None:
         ctx.close()
 
 
-def test_stage_writes_every_method_and_artifact(tmp_path: Path) -> None:
+def test_stage_writes_every_method_and_artifact(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     inp = _write_inputs(tmp_path / "in", 30)
-    ctx = _ctx(tmp_path / "out", inp["dirs"], method="rich_slam", n_particles=6, n_basis=64, workers=0,
-               n_map_snapshots=2, stats_every=4, grid_spacing=1.0,
+    from stages.slam import stage as slam_stage
+
+    for name, value in (("MAP_SNAPSHOTS", 2), ("STATS_EVERY", 4), ("GRID_SPACING", 1.0)):
+        monkeypatch.setattr(slam_stage, name, value)
+    ctx = _ctx(tmp_path / "out", inp["dirs"], method="rich_slam", n_particles=6, map={"n_basis": 64}, workers=0,
                methods=["odometry", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only"])
     _run(ctx)
     out = tmp_path / "out"
@@ -98,7 +101,7 @@ def test_stage_writes_every_method_and_artifact(tmp_path: Path) -> None:
     np.testing.assert_array_equal(odo["x"].to_numpy(), pq.read_table(inp["dirs"]["odometry"] / "odometry.parquet")["x"])
     post = read_artifact(out / "map_posterior.parquet", "map_posterior").to_pylist()[0]
     assert post["M"] == 64 and len(post["theta"]) == 64 and len(post["cov"]) == 64 * 64
-    assert post["length_unit_m"] == 0.1 and post["lengthscale"] == 20.0 and post["basis_kind"] == "tensor"
+    assert post["lengthscale_m"] == 2.0 and post["basis_kind"] == "tensor"
     cov = np.asarray(post["cov"]).reshape(64, 64)
     assert np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov).min() > 0
     grid = read_artifact(out / "map_grid.parquet", "map_grid")
@@ -121,8 +124,7 @@ def test_map_from_true_poses_is_right_and_frames_are_consistent(tmp_path: Path) 
     """Through the whole adapter (radar frame -> base -> world), the map built along ground truth
     separates points on the walls from points on the driven path."""
     inp = _write_inputs(tmp_path / "in", 120, odometry="groundtruth")
-    _run(_ctx(tmp_path / "out", inp["dirs"], method="odometry", methods=["odometry"], n_basis=256, workers=0,
-              grid_spacing=0.5, domain_padding=5.0))
+    _run(_ctx(tmp_path / "out", inp["dirs"], method="odometry", methods=["odometry"], workers=0))
     post = read_artifact(tmp_path / "out" / "map_posterior.parquet", "map_posterior").to_pylist()[0]
     basis = hm.make_basis((post["L1"], post["L2"]), (post["cx"], post["cy"]), post["M"])
     theta, cov = np.asarray(post["theta"]), np.asarray(post["cov"]).reshape(post["M"], -1)
@@ -142,11 +144,14 @@ def test_map_from_true_poses_is_right_and_frames_are_consistent(tmp_path: Path) 
         auc, np.median(occ_wall), np.median(occ_free))
 
 
-def test_zero_motion_noise_reproduces_odometry(tmp_path: Path) -> None:
+def test_zero_motion_noise_reproduces_odometry(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from stages.slam import methods
+    from stages.slam.rbpf import MotionNoise
+
+    monkeypatch.setattr(methods, "NOISE", MotionNoise(0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
     inp = _write_inputs(tmp_path / "in", 15)
-    _run(_ctx(tmp_path / "out", inp["dirs"], n_particles=4, n_basis=36, motion_std_xy=0.0, motion_std_yaw=0.0,
-              motion_rel_trans=0.0, motion_rel_rot=0.0, motion_rot_per_trans=0.0, motion_trans_per_rot=0.0,
-              method="rich_slam", methods=["fastslam_grid", "rich_slam"], workers=0, n_map_snapshots=0))
+    _run(_ctx(tmp_path / "out", inp["dirs"], n_particles=4, map={"n_basis": 36},
+              method="rich_slam", methods=["fastslam_grid", "rich_slam"], workers=0))
     odo = pq.read_table(inp["dirs"]["odometry"] / "odometry.parquet")
     for m in ("fastslam_grid", "rich_slam"):
         t = pq.read_table(tmp_path / "out" / f"trajectory_{m}.parquet")
@@ -161,9 +166,9 @@ def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
     with pytest.raises(UserError, match="base_from_radar"):
         _run(_ctx(tmp_path / "out", inp["dirs"], methods=["odometry"], method="odometry"))
     with pytest.raises(ValueError, match="perfect square"):
-        SlamParams(n_basis=250)
-    with pytest.raises(ValueError, match=r"laplace"):
-        SlamParams(backend="torch", map_update="laplace")
+        SlamParams(map={"n_basis": 250})  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"needs backend = torch"):
+        SlamParams(backend="numpy", device="cuda")
 
 
 def test_table3_runner_is_resumable_and_tabulates(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -268,8 +268,8 @@ def test_gated_union_keeps_the_radar_voxels_the_model_believes() -> None:
 
 
 def test_gate_rule_takes_the_lowest_gate_that_passes_the_union_rule(tmp_path) -> None:
-    from stages.complete.voxel_checkpoint import VoxelMeta, load_voxel_checkpoint, save_voxel_checkpoint
     from experiments.rmap_voxel_table3 import GATES, decide_gate, gate_row
+    from stages.complete.voxel_checkpoint import VoxelMeta, load_voxel_checkpoint, save_voxel_checkpoint
 
     def table(split: str, f_by_gate: dict[float, tuple[float, float]]) -> dict:
         overall = {"voxel": {"cd_l2": 0.8, "fscore_0.15": 0.60}}
@@ -338,8 +338,8 @@ def test_subvoxel_points_follow_the_neighbourhood_centroid() -> None:
 def test_subvoxel_placement_only_breaks_the_lattice_ties_of_the_fscore() -> None:
     """Why the sub-voxel rows are a diagnostic: a map one voxel off its ground truth scores 0 in the robust
     F@0.15 on the lattice and 1 once nudged by 1.5 mm towards it, while the tie-free F@0.20 is 1 both ways."""
-    from stages.complete.voxel_net import TilePrediction, subvoxel_points
     from experiments.rmap_voxel_table3 import score
+    from stages.complete.voxel_net import TilePrediction, subvoxel_points
 
     gt_keys = np.stack([np.arange(20), np.zeros(20, np.int64), np.zeros(20, np.int64)], 1)
     off = gt_keys + np.array([0, 1, 0])  # one voxel beside every ground-truth voxel

@@ -31,8 +31,9 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import Field
 
+from core import hilbert_map as hm
 from core.errors import UserError
-from core.stage import Stage, StageContext, StageParams, StageReport, blas_threads, parquet_rows
+from core.stage import Stage, StageContext, StageParams, StageReport, blas_threads, flatten_params, parquet_rows
 from schemas import read_artifact, write_artifact
 from stages.evaluate import figures, tables
 from stages.evaluate.trajectory import (
@@ -114,7 +115,7 @@ class EvaluateParams(StageParams):
 GT_SECTIONS = frozenset({"trajectory", "mapping", "uncertainty"})
 
 #: parameters of the slam stage this stage falls back to (name in slam's manifest -> default)
-SLAM_FALLBACKS = {"max_range": 5.0, "domain_padding": 5.0}
+SLAM_FALLBACKS = {"beams.max_range": 5.0}
 
 
 class EvaluateStage(Stage):
@@ -195,7 +196,7 @@ class Evaluation:
             return {}
         path = ctx.input_dirs["slam"] / "manifest.json"
         try:
-            return dict(json.loads(path.read_text()).get("params", {}))
+            return flatten_params(json.loads(path.read_text()).get("params", {}))
         except (FileNotFoundError, json.JSONDecodeError):
             return {}
 
@@ -291,11 +292,10 @@ class Evaluation:
         rng = np.random.default_rng(p.seed)
         slam_params = self._slam_params(ctx)
         post = self._posterior_meta(ctx)
-        max_range = p.max_range or float(slam_params.get("max_range") or SLAM_FALLBACKS["max_range"])
-        z_min = p.z_min if p.z_min is not None else slam_params.get("z_min")
-        z_max = p.z_max if p.z_max is not None else slam_params.get("z_max")
-        padding = p.domain_padding if p.domain_padding is not None else float(
-            slam_params.get("domain_padding") or SLAM_FALLBACKS["domain_padding"])
+        max_range = p.max_range or float(slam_params.get("beams.max_range") or SLAM_FALLBACKS["beams.max_range"])
+        z_min = p.z_min if p.z_min is not None else slam_params.get("beams.z_min")
+        z_max = p.z_max if p.z_max is not None else slam_params.get("beams.z_max")
+        padding = p.domain_padding if p.domain_padding is not None else hm.DOMAIN_PADDING
 
         stage, fname, schema = ("filter", "radar_filtered.parquet", "radar_filtered") if p.auc_points == "filtered" \
             else ("ingest", "radar.parquet", "radar")
@@ -364,7 +364,6 @@ class Evaluation:
         d = ctx.input_dirs.get("slam")
         if d is None or not (d / "map_posterior.parquet").exists() or not ctx.params.query_spacings:
             return
-        from core import hilbert_map as hm
         from core.map_field import field_from_posterior, grid_axes
 
         field = field_from_posterior(read_artifact(d / "map_posterior.parquet", "map_posterior"))
@@ -436,7 +435,6 @@ class Evaluation:
         gy = np.arange(lo[1] + p.grid_spacing / 2, hi[1], p.grid_spacing)
         pts = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
         mean, var, occ = fit.query(pts)
-        from core import hilbert_map as hm
 
         u0 = hm.prior_variance_at(fit.basis, fit.prior_diag, pts)
         write_artifact({"x": pts[:, 0], "y": pts[:, 1], "occupancy": occ, "variance": var, "mean": mean,

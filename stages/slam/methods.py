@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import partial
 from typing import Any, Literal
 
@@ -17,10 +17,12 @@ import numpy as np
 import numpy.typing as npt
 
 from core import hilbert_map as hm
-from stages.slam.backend import Backend, Device, resolve_device
+from stages.slam.backend import resolve_device
 from stages.slam.beam_sampling import BeamSamples, to_world
 from stages.slam.grid_map import GridModel, GridParticleMaps, make_grid_spec
+from stages.slam.method_names import HILBERT_METHODS
 from stages.slam.parallel import ParallelHilbertMaps
+from stages.slam.params import MapParams, SlamParams
 from stages.slam.rbpf import (
     RBPF,
     FilterHistory,
@@ -32,64 +34,38 @@ from stages.slam.rbpf import (
     odometry_increments,
 )
 
-Method = Literal["odometry", "radar_graph", "fastslam_grid", "rich_slam", "rich_slam_no_et", "rich_slam_mean_only"]
-METHODS: tuple[Method, ...] = ("odometry", "radar_graph", "fastslam_grid", "rich_slam", "rich_slam_no_et",
-                               "rich_slam_mean_only")
-#: RICH-SLAM (Sec. IV) and its Table III ablations: without endpoint tolerance, and the mean-only weight of H-SLAM
-HILBERT_METHODS = ("rich_slam", "rich_slam_no_et", "rich_slam_mean_only")
-#: methods that are not particle filters (:mod:`pose_graph`; the slam stage runs them on their own inputs)
-GRAPH_METHODS = ("radar_graph",)
-#: the paper's endpoint tolerance radius r_e (m, Sec. IV-D2: "we set r_e = 0.25 m")
-PAPER_ENDPOINT_TOLERANCE = 0.25
+DOMAIN_PADDING = hm.DOMAIN_PADDING
+#: the proposal: GMapping's motion model fitted to the odometry increment (eq. 21)
+NOISE = MotionNoise()
+RESAMPLING: Resampling = "systematic"
+#: resample when N_eff < this * N_p (eq. 31)
+RESAMPLE_THRESHOLD = 0.5
+#: the discretised endpoint-tolerance disc (eq. 29): points on its ring, rings, and the variance term's form
+ET_RING_POINTS, ET_RINGS = 8, 1
+ET_VARIANCE: Literal["exact", "taylor"] = "taylor"
+#: torch CPU threads of the torch backend (one is far faster on a shared machine)
+TORCH_THREADS = 1
+#: the grid baseline's inverse sensor model and likelihood field
+GRID = GridModel()
 F64 = npt.NDArray[np.floating[Any]]
 
 
-@dataclass(frozen=True)
-class SlamConfig:
-    """What the filter methods need, in metres and radians (defaults: the paper's, Table II and Sec. IV)."""
+def map_model(p: SlamParams, method: str, form: Literal["information", "covariance"] = "information") -> MapModel:
+    """The particle maps' parameter object of a Hilbert method (every backend takes it)."""
+    m = p.map
+    return MapModel(m.lengthscale_m, m.signal_variance, m.noise_variance, weighting(p, method),
+                    dtype=np.dtype(m.dtype), form=form)
 
-    n_particles: int = 200
-    lengthscale_m: float = 2.0
-    signal_variance: float = 16.0
-    noise_variance: float = 0.36
-    n_basis: int = 256
-    basis_kind: hm.BasisKind = "tensor"
-    endpoint_tolerance: float = PAPER_ENDPOINT_TOLERANCE
-    et_ring_points: int = 8
-    et_rings: int = 1
-    et_variance: Literal["exact", "taylor"] = "taylor"
-    #: the proposal: GMapping's motion model fitted to the odometry increment (eq. 21)
-    noise: MotionNoise = field(default_factory=MotionNoise)
-    resampling: Resampling = "systematic"
-    resample_threshold: float = 0.5
-    map_update: Literal["kalman", "laplace"] = "kalman"
-    map_form: Literal["auto", "information", "covariance"] = "auto"
-    laplace_iterations: int = 20
-    dtype: Literal["float64", "float32"] = "float64"
-    workers: int = 2
-    #: array backend of the Hilbert methods' particle maps and filter loop, and its device
-    backend: Backend = "numpy"
-    device: Device = "auto"
-    #: torch CPU threads (0: torch's default, one per core)
-    torch_threads: int = 1
-    grid: GridModel = field(default_factory=GridModel)
-    grid_resolution: float = 0.1
 
-    def map_model(self, method: str, form: Literal["information", "covariance"] = "information") -> MapModel:
-        """The particle maps' parameter object of a Hilbert method (every backend takes it)."""
-        return MapModel(self.lengthscale_m, self.signal_variance, self.noise_variance, self.weighting(method),
-                        update=self.map_update, dtype=np.dtype(self.dtype), laplace_iterations=self.laplace_iterations,
-                        form=form)
-
-    def weighting(self, method: str) -> HilbertWeighting:
-        """Eq. 28-29 for ``rich_slam``; r_e = 0 for ``rich_slam_no_et``; the mean only for ``rich_slam_mean_only``."""
-        return HilbertWeighting(
-            use_variance=method != "rich_slam_mean_only",
-            endpoint_tolerance=0.0 if method == "rich_slam_no_et" else self.endpoint_tolerance,
-            ring_points=self.et_ring_points,
-            rings=self.et_rings,
-            et_variance=self.et_variance,
-        )
+def weighting(p: SlamParams, method: str) -> HilbertWeighting:
+    """Eq. 28-29 for ``rich_slam``; r_e = 0 for ``rich_slam_no_et``; the mean only for ``rich_slam_mean_only``."""
+    return HilbertWeighting(
+        use_variance=method != "rich_slam_mean_only",
+        endpoint_tolerance=0.0 if method == "rich_slam_no_et" else p.map.endpoint_tolerance,
+        ring_points=ET_RING_POINTS,
+        rings=ET_RINGS,
+        et_variance=ET_VARIANCE,
+    )
 
 
 @dataclass
@@ -126,7 +102,7 @@ def step_flops(form: str, n: float, b: float, M: int, w: HilbertWeighting) -> fl
     return n * M**2 + M**3 / 3 + (n + q) * M**2
 
 
-def choose_form(cfg: SlamConfig, method: str, scans: Sequence[BeamSamples], M: int,
+def choose_form(p: SlamParams, method: str, scans: Sequence[BeamSamples], M: int,
                 info_efficiency: float = 0.75) -> Literal["information", "covariance"]:
     """``auto``: the form with the smaller modelled cost at the sequence's mean samples per scan.
 
@@ -135,23 +111,21 @@ def choose_form(cfg: SlamConfig, method: str, scans: Sequence[BeamSamples], M: i
     side by side at 12, 61 and 180 samples per scan (N_p = 200, M = 256, 2 workers: 0.074 / 0.163 /
     0.334 s per scan against 0.054 / 0.162 / 0.666); the crossover is near 65 samples per scan.
     """
-    if cfg.map_form != "auto":
-        return cfg.map_form
     n = float(np.mean([s.n for s in scans])) if len(scans) else 0.0
     b = float(np.mean([len(s.endpoints) for s in scans])) if len(scans) else 0.0
-    w = cfg.weighting(method)
+    w = weighting(p, method)
     info = step_flops("information", n, b, M, w) / info_efficiency
     return "information" if info < step_flops("covariance", n, b, M, w) else "covariance"
 
 
-def make_hilbert_maps(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, n_particles: int,
+def make_hilbert_maps(p: SlamParams, basis: hm.HilbertBasis, method: str, n_particles: int,
                       form: Literal["information", "covariance"] = "information",
                       ) -> HilbertParticleMaps | ParallelHilbertMaps:
     """The particle maps of a Hilbert method: one global map over ``basis`` per particle, in ``workers``
     processes when ``workers > 0``."""
     factory: Callable[..., HilbertParticleMaps | ParallelHilbertMaps] = (
-        partial(ParallelHilbertMaps, workers=cfg.workers) if cfg.workers > 0 else HilbertParticleMaps)
-    return factory(basis, n_particles, cfg.map_model(method, form))
+        partial(ParallelHilbertMaps, workers=p.workers) if p.workers > 0 else HilbertParticleMaps)
+    return factory(basis, n_particles, map_model(p, method, form))
 
 
 Observer = Callable[[int, RBPF, int], None]
@@ -162,8 +136,7 @@ def run_method(
     odometry: F64,
     scans: Sequence[BeamSamples],
     basis: hm.HilbertBasis,
-    cfg: SlamConfig,
-    seed: int,
+    p: SlamParams,
     observer: Observer | None = None,
     on_step: Callable[[], None] | None = None,
 ) -> MethodResult:
@@ -175,16 +148,16 @@ def run_method(
             for _ in range(len(odometry)):
                 on_step()
         return MethodResult(method, odometry.copy(), np.ones(len(odometry)), time.perf_counter() - t0)
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(p.seed)
     form: Literal["information", "covariance"] = "information"
     maps: GridParticleMaps | HilbertParticleMaps | ParallelHilbertMaps | None = None
     if method == "fastslam_grid":
-        spec = make_grid_spec(basis.centre, basis.half_widths, cfg.grid_resolution)
-        maps = GridParticleMaps(spec, cfg.n_particles, cfg.grid)
+        spec = make_grid_spec(basis.centre, basis.half_widths, p.grid.resolution)
+        maps = GridParticleMaps(spec, p.n_particles, GRID)
     elif method in HILBERT_METHODS:
-        form = choose_form(cfg, method, scans, basis.M)
-        if cfg.backend == "numpy":
-            maps = make_hilbert_maps(cfg, basis, method, cfg.n_particles, form)
+        form = choose_form(p, method, scans, basis.M)
+        if p.backend == "numpy":
+            maps = make_hilbert_maps(p, basis, method, p.n_particles, form)
     else:
         raise ValueError(f"unknown filter method {method!r}; one of odometry, fastslam_grid, "
                          f"{', '.join(HILBERT_METHODS)}")
@@ -198,11 +171,11 @@ def run_method(
 
     device = "cpu"
     if maps is None:
-        device = resolve_device(cfg.backend, cfg.device)[0]
-        h = _run_torch(cfg, basis, method, form, device, odometry, scans, rng, keep_best, on_step)
+        device = resolve_device(p.backend, p.device)[0]
+        h = _run_torch(p, basis, method, form, device, odometry, scans, rng, keep_best, on_step)
     else:
         try:
-            f = RBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold)
+            f = RBPF(maps, odometry[0], p.n_particles, NOISE, rng, RESAMPLING, RESAMPLE_THRESHOLD)
             h = f.run(odometry_increments(odometry), scans, observer=keep_best, on_step=on_step)
         finally:
             close = getattr(maps, "close", None)
@@ -215,29 +188,27 @@ def run_method(
     )
 
 
-def _run_torch(cfg: SlamConfig, basis: hm.HilbertBasis, method: str, form: Literal["information", "covariance"],
+def _run_torch(p: SlamParams, basis: hm.HilbertBasis, method: str, form: Literal["information", "covariance"],
                device: str, odometry: F64, scans: Sequence[BeamSamples], rng: np.random.Generator,
                observer: Observer, on_step: Callable[[], None] | None) -> FilterHistory:
     """The Hilbert method's filter on the torch backend (imported only here: torch is optional)."""
     from stages.slam.torch_filter import TorchRBPF, cpu_threads
     from stages.slam.torch_maps import TorchHilbertMaps
 
-    if cfg.map_update != "kalman":
-        raise ValueError("the torch backend implements the Kalman map update; use backend = numpy for laplace")
-    maps = TorchHilbertMaps(basis, cfg.n_particles, cfg.map_model(method, form), device=device)
-    f = TorchRBPF(maps, odometry[0], cfg.n_particles, cfg.noise, rng, cfg.resampling, cfg.resample_threshold)
-    with cpu_threads(cfg.torch_threads if device == "cpu" else 0):
+    maps = TorchHilbertMaps(basis, p.n_particles, map_model(p, method, form), device=device)
+    f = TorchRBPF(maps, odometry[0], p.n_particles, NOISE, rng, RESAMPLING, RESAMPLE_THRESHOLD)
+    with cpu_threads(TORCH_THREADS if device == "cpu" else 0):
         return f.run(odometry_increments(odometry), scans, observer=observer,  # type: ignore[arg-type]
                      on_step=on_step)
 
 
 def map_along(
-    poses: F64, scans: Sequence[BeamSamples], basis: hm.HilbertBasis, cfg: SlamConfig
+    poses: F64, scans: Sequence[BeamSamples], basis: hm.HilbertBasis, m: MapParams
 ) -> tuple[F64, F64]:
     """One Hilbert map built along fixed poses (mapping with known poses; used for non-Hilbert methods)."""
-    theta, cov = hm.prior(basis, cfg.lengthscale_m, cfg.signal_variance)
+    theta, cov = hm.prior(basis, m.lengthscale_m, m.signal_variance)
     for pose, s in zip(poses, scans, strict=True):
         if s.n:
             phi = hm.features(basis, to_world(pose, s.points))
-            theta, cov = hm.kalman_update(theta, cov, phi, s.labels, cfg.noise_variance, inplace=True)
+            theta, cov = hm.kalman_update(theta, cov, phi, s.labels, m.noise_variance, inplace=True)
     return theta, cov

@@ -22,6 +22,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from stages.slam.params import GraphParams
 from stages.slam.registration import MatcherModel, match
 from stages.slam.se2 import between, compose, wrap_angle
 
@@ -31,23 +32,15 @@ I64 = npt.NDArray[np.int64]
 GTSAM_INSTALL = "pip install gtsam"
 
 
-@dataclass(frozen=True)
-class GraphModel:
-    """Keyframes, loop closures and the optimiser of :func:`optimise_graph`."""
+#: fewest endpoints in either local cloud of a loop candidate
+MIN_LOOP_POINTS = 30
+#: keyframes between loop searches of the same place
+LOOP_EVERY = 2
 
-    keyframe_distance: float = 1.0  # m travelled between keyframes
-    keyframe_angle_deg: float = 15.0  # or this much turned
-    local_keyframes: int = 10  # keyframes in the local cloud of each end of a loop closure
-    loop_radius: float = 3.0  # m: keyframes this close in the odometry's estimate are loop candidates
-    loop_min_travel: float = 15.0  # m travelled between the two keyframes of a loop candidate
-    loop_search_yaw_deg: float = 20.0  # the loop closure's yaw search
-    loop_min_inliers: float = 0.6  # share of points matched for a closure to be proposed
-    min_points: int = 30  # fewest endpoints in either local cloud of a loop candidate
-    loop_every: int = 2  # keyframes between loop searches of the same place
-    robust: Literal["gnc", "none"] = "gnc"
-    bias_sigma0: float = 0.01  # rad/s: prior std of the yaw-rate bias the odometry leaves
-    bias_walk: float = 1e-4  # rad/s/sqrt(s): its random walk
-    matcher: MatcherModel = field(default_factory=MatcherModel)
+
+def matcher_of(g: GraphParams) -> MatcherModel:
+    """The registration's model with the graph's likelihood-field settings."""
+    return MatcherModel(sigma=g.match_sigma, temperature=g.match_temperature)
 
 
 @dataclass(frozen=True)
@@ -176,7 +169,7 @@ def travelled(keyframe_poses: F64) -> F64:
     return np.r_[0.0, np.cumsum(np.hypot(*np.diff(keyframe_poses[:, :2], axis=0).T))]
 
 
-def loop_closures(poses: F64, clouds: list[F64], model: GraphModel) -> list[Edge]:
+def loop_closures(poses: F64, clouds: list[F64], model: GraphParams) -> list[Edge]:
     """Closures proposed and verified on the odometry's keyframe poses: for every keyframe (at most one closure
     per ``loop_every`` keyframes), the nearest earlier keyframe within ``loop_radius`` that lies
     ``loop_min_travel`` or more back along the path; the local cloud around the keyframe (``local_keyframes``
@@ -188,7 +181,7 @@ def loop_closures(poses: F64, clouds: list[F64], model: GraphModel) -> list[Edge
     last_closed = -(10**9)
     K = len(poses)
     for k in range(K):
-        if k - last_closed < model.loop_every:
+        if k - last_closed < LOOP_EVERY:
             continue
         far = np.flatnonzero(s[k] - s[: k + 1] >= model.loop_min_travel)
         if not len(far):
@@ -199,9 +192,9 @@ def loop_closures(poses: F64, clouds: list[F64], model: GraphModel) -> list[Edge
         j = int(far[np.argmin(d)])
         ref = local_cloud(poses, clouds, j, range(max(0, j - half), min(K, j + half + 1)))
         q = local_cloud(poses, clouds, k, range(max(0, k - half), min(K, k + half + 1)))
-        if len(q) < model.min_points or len(ref) < model.min_points:
+        if len(q) < MIN_LOOP_POINTS or len(ref) < MIN_LOOP_POINTS:
             continue
-        m = match(ref, q, between(poses[j], poses[k]), model.matcher, model.loop_radius, model.loop_search_yaw_deg)
+        m = match(ref, q, between(poses[j], poses[k]), matcher_of(model), model.loop_radius, model.loop_search_yaw)
         if m.inliers < model.loop_min_inliers:
             continue
         out.append(Edge("loop", j, k, m.pose, world_cov_to_body(m.pose, m.cov), m.inliers))
@@ -381,7 +374,7 @@ def interpolate(odometry: F64, keyframes: I64, keyframe_poses: F64) -> F64:
     return compose(c, odometry)
 
 
-def optimise_graph(odometry: F64, cov: F64, t_s: F64, endpoints: Sequence[F64], model: GraphModel) -> GraphResult:
+def optimise_graph(odometry: F64, cov: F64, t_s: F64, endpoints: Sequence[F64], model: GraphParams) -> GraphResult:
     """``radar_graph`` on arrays: ``odometry (T, 3)`` world <- base poses at the scans, ``cov (T, 3, 3)`` their
     increment covariances (row i: into scan i, body frame), ``t_s (T,)`` the scan times (s), ``endpoints`` each
     scan's radar endpoints in the body frame (2D). Raises ValueError for a log too short for two keyframes."""
@@ -390,18 +383,18 @@ def optimise_graph(odometry: F64, cov: F64, t_s: F64, endpoints: Sequence[F64], 
         raise ValueError(f"radar_graph: {len(odometry)} odometry poses, {len(cov)} covariances, {len(t_s)} times and "
                          f"{len(endpoints)} scans must agree")
     import_gtsam()  # fail before the work when it is missing
-    keyframes = select_keyframes(odometry, model.keyframe_distance, model.keyframe_angle_deg)
+    keyframes = select_keyframes(odometry, model.keyframe_distance, model.keyframe_angle)
     warnings: list[str] = []
     if len(keyframes) < 2:
-        raise ValueError(f"radar_graph: the odometry moves less than slam.graph_keyframe_distance = "
-                         f"{model.keyframe_distance} m and slam.graph_keyframe_angle = {model.keyframe_angle_deg} deg "
+        raise ValueError(f"radar_graph: the odometry moves less than slam.graph.keyframe_distance = "
+                         f"{model.keyframe_distance} m and slam.graph.keyframe_angle = {model.keyframe_angle} deg "
                          "over the log: one keyframe, no graph")
-    clouds = keyframe_clouds(odometry, endpoints, keyframes, model.matcher.resolution)
+    clouds = keyframe_clouds(odometry, endpoints, keyframes, matcher_of(model).resolution)
     odo = odometry_edges(odometry, cov, keyframes, np.asarray(t_s, np.float64))
     poses = odometry[keyframes]
     loops = loop_closures(poses, clouds, model)
     edges = [*odo, *loops]
-    opt, kcov, kept, bias = optimise(poses, edges, model.robust, model.bias_sigma0, model.bias_walk)
+    opt, kcov, kept, bias = optimise(poses, edges, "gnc", model.bias_sigma0, model.bias_walk)
     edges = [replace(e, accepted=k) for e, k in zip(edges, kept, strict=True)]
     rejected = sum(e.kind == "loop" and not e.accepted for e in edges)
     if rejected:

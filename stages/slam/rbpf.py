@@ -43,12 +43,12 @@ class MotionNoise:
     ``std_yaw + rel_rot * |rotation| + rot_per_trans * |translation|`` on yaw.
     """
 
-    std_xy: float = 0.02
-    std_yaw: float = 0.005
-    rel_trans: float = 0.0
-    rel_rot: float = 0.0
-    rot_per_trans: float = 0.0
-    trans_per_rot: float = 0.0
+    std_xy: float = 0.002  # m per scan
+    std_yaw: float = 0.0005  # rad per scan
+    rel_trans: float = 0.05  # m per metre translated (GMapping's srr)
+    rel_rot: float = 0.005  # rad per radian turned (stt)
+    rot_per_trans: float = 0.03  # rad per metre translated (str)
+    trans_per_rot: float = 0.06  # m per radian turned (srt)
 
     def std(self, u: npt.ArrayLike) -> tuple[float, float]:
         """``(std on x and y, std on yaw)`` of the step with body-frame increment ``u``."""
