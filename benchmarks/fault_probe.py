@@ -428,7 +428,7 @@ def _report_none(lab: Lab) -> None:
 @probe("report: rows computed from replaced results are called stale")
 def _report_stale(lab: Lab) -> None:
     r = lab.cli("run", "odometry", "--source", str(lab.bag), "--runs-dir", str(lab.runs), "--set",
-                "odometry.velocity_sigma_mps=0.12")
+                "odometry.velocity.sigma_mps=0.12")
     lab.expect(r, 0)
     lab.expect(lab.cli("report", "--seqs", "short", "--runs-dir", str(lab.runs)), 0, "stale", "rerun since")
 

@@ -200,7 +200,7 @@ def test_an_imu_noise_set_too_low_is_warned_about(bag: Path, walked: tuple[Path,
     runs = tmp_path / "runs"
     shutil.copytree(walked[0], runs)  # ingest and filter are cached there
     seq = SequenceInfo(name="walk", kind="source", dataset=str(walked[1]), source=bag)
-    over = {"odometry": {"accel_noise_density": 0.002, "gate_probability": 0.99}}
+    over = {"odometry": {"imu": {"accel_noise_density": 0.002}, "velocity": {"gate_probability": 0.99}}}
     run_unwrapped(Runner(seq, runs, load_stages(), Workflow("t", ["ingest", "filter", "odometry"]), over),
                   ["odometry"])
     st = _stats(runs / "walk" / "odometry")

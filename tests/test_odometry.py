@@ -13,10 +13,11 @@ from core.errors import UserError
 from core.geometry import pose_matrix, yaw_of
 from core.trajectory_metrics import drift, se2_compose_anchor
 from schemas.io import read_artifact
-from stages.odometry.ekf_rio import EkfConfig, gravity_aligned, run_ekf
+from stages.odometry.ekf_rio import gravity_aligned, run_ekf
 from tests.test_filter import run_stages
 from tests.test_filter_scene import base_pose, circle_run, write_circle_log
 from tests.test_ingest_logs import BASE_FROM_IMU, GT_TOPIC, T0
+from tests.test_odometry_robust import ekf_params
 
 
 def _ekf_on(run, velocity_noise: float, seed: int, updates: bool = True):
@@ -31,7 +32,7 @@ def _ekf_on(run, velocity_noise: float, seed: int, updates: bool = True):
     valid[0] = True
     imu_from_radar = np.linalg.inv(pose_matrix(*BASE_FROM_IMU)) @ run.base_from_radar
     res = run_ekf(sc.imu_t, sc.imu[:, :3], sc.imu[:, 3:], scan_t, vel, cov, np.full(len(scan_t), 3), valid,
-                  imu_from_radar, EkfConfig(accel_noise_density=0.02))
+                  imu_from_radar, ekf_params(imu={"accel_noise_density": 0.02}))
     T_wb = res.T_world_imu @ np.linalg.inv(pose_matrix(*BASE_FROM_IMU))
     est = np.stack([T_wb[:, 0, 3], T_wb[:, 1, 3], yaw_of(T_wb[:, :3, :3])], axis=1)
     pos, yaw = base_pose((scan_t - T0) * 1e-9, run.radius, run.speed)
@@ -129,7 +130,7 @@ def test_odometry_from_a_bag_topic(circle_log, tmp_path: Path) -> None:
     with pytest.raises(UserError, match="no odometry topic"):
         run_stages(bag, tmp_path / "runs3", ["odometry"], {"odometry": {"source": "bag"}})
     # the EKF's height settings mean nothing for a topic: said, not silently dropped
-    over["odometry"]["level_velocity_sigma"] = 0.2
+    over["odometry"]["height"] = {"level_velocity_sigma": 0.2}
     out = run_stages(bag, tmp_path / "runs4", ["odometry"], over)
     warnings = json.loads((out / "odometry" / "manifest.json").read_text())["stats"]["warnings"]
-    assert any("odometry.level_velocity_sigma=0.2" in w and "source=bag" in w for w in warnings)
+    assert any("odometry.height.level_velocity_sigma=0.2" in w and "source=bag" in w for w in warnings)

@@ -4,23 +4,24 @@ the v3 clone update's overconfidence, and the bag source's fallback."""
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
 from core.geometry import pose_matrix, yaw_of
 from core.trajectory_metrics import increment_nees, se2_increments
 from schemas.io import read_artifact
-from stages.odometry.ekf_rio import EkfConfig, increment_covariance, run_ekf
+from stages.odometry.ekf_rio import increment_covariance, run_ekf
+from stages.odometry.params import CovarianceParams, OdometryParams
 from stages.odometry.stage import COV_COLS, bag_increment_covariance
 from tests.test_filter import run_stages
 from tests.test_filter_scene import base_pose, circle_run, write_circle_log
 from tests.test_ingest_logs import BASE_FROM_IMU, GT_TOPIC, T0
+from tests.test_odometry_robust import ekf_params
 
 #: the synthetic circle's noise: IMU white noise (gyro rad/s/sqrt(Hz), accel m/s^2/sqrt(Hz)) and radar velocity std
 GYRO_NOISE, ACCEL_NOISE, VEL_SIGMA = 1e-3, 0.01, 0.05
-MATCHED = EkfConfig(accel_noise_density=ACCEL_NOISE, gyro_noise_density=GYRO_NOISE, sigma_gyro_bias0=0.002)
+MATCHED = ekf_params(imu={"accel_noise_density": ACCEL_NOISE, "gyro_noise_density": GYRO_NOISE},
+                     init={"sigma_gyro_bias0": 0.002})
 
 
 def _band(n: int) -> tuple[float, float]:
@@ -29,7 +30,7 @@ def _band(n: int) -> tuple[float, float]:
     return 3.0 - h, 3.0 + h
 
 
-def _circle(seed: int, cfg: EkfConfig = MATCHED):
+def _circle(seed: int, cfg: OdometryParams = MATCHED):
     run = circle_run(duration=15.0, seed=seed, gyro_noise=GYRO_NOISE, accel_noise=ACCEL_NOISE,
                      gyro_bias=(0.001, -0.001, 0.002), clutter=0, ghosts=0)
     rng = np.random.default_rng(seed)
@@ -65,17 +66,9 @@ def test_cloned_increment_covariance_is_small_positive_and_honest(seed: int) -> 
     assert all(0.6 < v < 1.6 for v in nees["axis_mean"]), nees
 
 
-def test_the_schema_v3_clone_update_was_overconfident() -> None:
-    """Reducing the clone's covariance by the updates (as if the previous pose were corrected too, which the
-    written trajectory never is) makes x and y several times overconfident on the same matched run."""
-    res, B, est, ref = _circle(0, replace(MATCHED, smoothed_clone=True))
-    nees = increment_nees(est, ref, increment_covariance(res.T_world_imu, res.pose_pair_cov, B), res.initialized)
-    assert nees["mean"] > _band(nees["increments"])[1]
-    assert max(nees["axis_mean"][:2]) > 2.5, nees
-
-
 def test_actual_noise_equal_to_the_filter_s_gives_the_filter_s_covariance() -> None:
-    same = replace(MATCHED, actual_accel_noise_density=ACCEL_NOISE, actual_gyro_noise_density=GYRO_NOISE)
+    cov = CovarianceParams(accel_noise_density=ACCEL_NOISE, gyro_noise_density=GYRO_NOISE, velocity_scale=1.0)
+    same = MATCHED.model_copy(update={"covariance": cov})
     a, _, _, _ = _circle(0)
     b, _, _, _ = _circle(0, same)
     np.testing.assert_allclose(b.pose_pair_cov, a.pose_pair_cov, rtol=1e-9, atol=1e-15)
@@ -84,13 +77,13 @@ def test_actual_noise_equal_to_the_filter_s_gives_the_filter_s_covariance() -> N
 def test_a_mistuned_filter_gets_an_honest_covariance_from_the_actual_noise() -> None:
     """A filter whose process noise is 10x the IMU's (and whose radar covariance is 4x the radar's) over-covers
     its increments; the same filter (same estimate) with the actual noise given writes an honest covariance."""
-    loose = EkfConfig(accel_noise_density=10 * ACCEL_NOISE, gyro_noise_density=10 * GYRO_NOISE,
-                      sigma_gyro_bias0=0.002, velocity_cov_scale=4.0)
+    loose = ekf_params(imu={"accel_noise_density": 10 * ACCEL_NOISE, "gyro_noise_density": 10 * GYRO_NOISE},
+                       init={"sigma_gyro_bias0": 0.002}, velocity={"cov_scale": 4.0})
     res, B, est, ref = _circle(0, loose)
     own = increment_nees(est, ref, increment_covariance(res.T_world_imu, res.pose_pair_cov, B), res.initialized)
     assert own["mean"] < 1.0, own
-    told = replace(loose, actual_accel_noise_density=ACCEL_NOISE, actual_gyro_noise_density=GYRO_NOISE,
-                   actual_velocity_cov_scale=0.25)
+    told = loose.model_copy(update={"covariance": CovarianceParams(
+        accel_noise_density=ACCEL_NOISE, gyro_noise_density=GYRO_NOISE, velocity_scale=0.25)})
     res2, _, est2, _ = _circle(0, told)
     np.testing.assert_array_equal(est2, est)  # the estimate does not change
     nees = increment_nees(est, ref, increment_covariance(res2.T_world_imu, res2.pose_pair_cov, B), res.initialized)
@@ -113,7 +106,7 @@ def test_increments_and_their_covariance_ignore_a_rigid_motion_of_the_trajectory
 def test_bag_source_writes_the_parameter_covariance(tmp_path) -> None:
     run = circle_run(duration=6.0, seed=3, gyro_noise=1.5e-4, accel_noise=6e-4)
     bag = write_circle_log(tmp_path / "circle", run)
-    over = {"ingest": {"odometry_topic": GT_TOPIC}, "odometry": {"source": "bag", "bag_std_xy": 0.01}}
+    over = {"ingest": {"odometry_topic": GT_TOPIC}, "odometry": {"source": "bag", "bag": {"std_xy": 0.01}}}
     out = run_stages(bag, tmp_path / "runs", ["odometry"], over)
     odo = read_artifact(out / "odometry" / "odometry.parquet", "odometry")
     u = se2_increments(np.stack([odo[c].to_numpy() for c in ("x", "y", "yaw")], axis=1))

@@ -28,7 +28,7 @@ def test_radar_only_workflow_builds_completes_and_scores_the_map_along_the_slam_
     assert "ingest    done" not in r.stderr and "filter    done" not in r.stderr  # cached: the default workflow's
     # the odometry estimates the radar's mount under the level prior (the map's height; stages/odometry/README.md)
     odo = json.loads((seq / "odometry" / "manifest.json").read_text())
-    assert odo["params"]["level_velocity_sigma"] > 0 and odo["params"]["mount_sigma0_deg"] > 0
+    assert odo["params"]["height"]["level_velocity_sigma"] > 0 and odo["params"]["height"]["mount_sigma0_deg"] > 0
     assert len(odo["stats"]["mount_error_deg"]) == 3
     voxel = json.loads((seq / "voxel" / "manifest.json").read_text())
     assert voxel["params"]["trajectory"] == "slam" and voxel["params"]["attitude"] == "odometry"

@@ -56,6 +56,8 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
+from stages.odometry.params import OdometryParams
+
 F64 = npt.NDArray[np.float64]
 
 
@@ -72,57 +74,8 @@ def so3_exp(w: F64) -> F64:
     return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th ** 2 * K @ K
 
 
-@dataclass(frozen=True)
-class EkfConfig:
-    gravity: float = 9.80665
-    accel_noise_density: float = 0.2
-    gyro_noise_density: float = 0.002
-    accel_bias_walk: float = 1e-3
-    gyro_bias_walk: float = 1e-4
-    sigma_v0: float = 0.2
-    sigma_attitude0: float = np.radians(2.0)
-    sigma_gyro_bias0: float = 0.005
-    sigma_accel_bias0: float = 0.1
-    init_window_s: float = 0.2
-    velocity_cov_scale: float = 1.0
-    velocity_sigma: float = 0.1
-    use_estimator_covariance: bool = True
-    gate_probability: float = 0.999
-    #: the clone update of schema v3 (inconsistent, kept for its test): the clone's covariance reduced as if its
-    #: mean were corrected too, while the increment is formed from the pose written at the last scan
-    smoothed_clone: bool = False
-    #: the noise the increment covariance assumes (None: the filter's own): the covariance written is the error
-    #: covariance of this filter (its gains) when the IMU is this noisy and the ego-velocity covariance is scaled by
-    #: ``actual_velocity_cov_scale`` (a suboptimal-filter covariance analysis, Gelb 1974 ch. 7)
-    actual_accel_noise_density: float | None = None
-    actual_gyro_noise_density: float | None = None
-    actual_velocity_cov_scale: float = 1.0
-    zero_rate_update: bool = True
-    zero_rate_sigma: float = 0.002
-    zero_rate_min_scans: int = 5
-    init_motion_compensation: bool = True
-    standstill_init: bool = True
-    standstill_min_s: float = 1.0
-    standstill_window_s: float = 0.2
-    standstill_accel_std: float = 0.3
-    standstill_gyro_std: float = 0.03
-    standstill_max_speed: float = 0.15
-    standstill_accel_change: float = 0.15
-    standstill_gyro_change: float = 0.01
-    recover_after: int = 3
-    recover_sigma_v: float = 0.5
-    recover_sigma_attitude: float = np.radians(5.0)
-    recover_sigma_accel_bias: float = 0.3
-    #: recover only when the rejected innovations agree with one another (the filter is off, not the radar): each
-    #: pair of consecutive rejected innovations passes the gate on the sum of their covariances
-    recover_consistent: bool = True
-    #: prior std of the radar mount's rotation error (rad, each axis); 0: the stated extrinsic is exact (15 states)
-    mount_sigma0: float = 0.0
-    #: std of a zero vertical-velocity pseudo-measurement at every scan (m/s; 0: none): the platform moves on
-    #: level floors, on average (it makes the mount's pitch observable at constant speed)
-    level_velocity_sigma: float = 0.0
-    #: the level pseudo-measurement corrects only the height, vertical velocity and mount (attitude, biases kept)
-    level_schmidt: bool = True
+#: the standstill detector's window (s)
+STANDSTILL_WINDOW_S = 0.2
 
 
 @dataclass
@@ -180,13 +133,13 @@ def radar_moving(vel: F64, cov: F64, valid: npt.NDArray[np.bool_], max_speed: fl
 
 
 def find_standstill(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, t0: int, scan_t: npt.NDArray[np.int64],
-                    moving: npt.NDArray[np.bool_], cfg: EkfConfig) -> Standstill | None:
+                    moving: npt.NDArray[np.bool_], cfg: OdometryParams) -> Standstill | None:
     """The standstill starting at ``t0``: consecutive IMU windows of ``standstill_window_s`` whose specific
     force and rate vary less than ``standstill_accel_std`` / ``standstill_gyro_std`` (per axis) and whose
     means stay within ``standstill_accel_change`` / ``standstill_gyro_change`` of the first window's (a slow
     start shows in the means first), cut at the first radar scan that is ``moving``, less one window of
     margin; None when shorter than ``standstill_min_s``."""
-    win = round(cfg.standstill_window_s * 1e9)
+    win = round(STANDSTILL_WINDOW_S * 1e9)
     fast = scan_t[(scan_t >= t0) & moving]
     t_stop = int(fast[0]) if len(fast) else int(imu_t[-1])
     i0 = int(np.searchsorted(imu_t, t0))
@@ -197,16 +150,16 @@ def find_standstill(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, t0: int, 
         if hi - lo < 4:
             break
         a, g = acc[lo:hi], gyro[lo:hi]
-        if a.std(axis=0).max() > cfg.standstill_accel_std or g.std(axis=0).max() > cfg.standstill_gyro_std:
+        if a.std(axis=0).max() > cfg.standstill.accel_std or g.std(axis=0).max() > cfg.standstill.gyro_std:
             break
         means = (a.mean(axis=0), g.mean(axis=0))
         first = first or means
-        if np.abs(means[0] - first[0]).max() > cfg.standstill_accel_change or \
-                np.abs(means[1] - first[1]).max() > cfg.standstill_gyro_change:
+        if np.abs(means[0] - first[0]).max() > cfg.standstill.accel_change or \
+                np.abs(means[1] - first[1]).max() > cfg.standstill.gyro_change:
             break
         end += win
     end -= win
-    if end - t0 < cfg.standstill_min_s * 1e9:
+    if end - t0 < cfg.standstill.min_s * 1e9:
         return None
     i1 = int(np.searchsorted(imu_t, end))
     a, g = acc[i0:i1], gyro[i0:i1]
@@ -218,10 +171,10 @@ def find_standstill(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, t0: int, 
 class EkfRio:
     """The filter state and its two operations."""
 
-    def __init__(self, cfg: EkfConfig, R0: F64, v0: F64) -> None:
+    def __init__(self, cfg: OdometryParams, R0: F64, v0: F64) -> None:
         self.cfg = cfg
         #: error-state size: 15, or 18 with the mount rotation error
-        self.n = 18 if cfg.mount_sigma0 > 0 else 15
+        self.n = 18 if np.radians(cfg.height.mount_sigma0_deg) > 0 else 15
         #: the mount rotation correction (radar frame): R_ir = R_ir_stated Exp(mount)
         self.mount = np.zeros(3)
         self.p = np.zeros(3)
@@ -229,26 +182,28 @@ class EkfRio:
         self.R = np.asarray(R0, dtype=np.float64).copy()
         self.bg = np.zeros(3)
         self.ba = np.zeros(3)
-        self.g = np.array([0.0, 0.0, -cfg.gravity])
-        s = np.r_[np.zeros(3), np.full(3, cfg.sigma_v0), np.full(2, cfg.sigma_attitude0), 1e-6,
-                  np.full(3, cfg.sigma_gyro_bias0), np.full(3, cfg.sigma_accel_bias0),
-                  np.full(self.n - 15, cfg.mount_sigma0)]
+        self.g = np.array([0.0, 0.0, -cfg.imu.gravity])
+        ini = cfg.init
+        s = np.r_[np.zeros(3), np.full(3, ini.sigma_v0), np.full(2, np.radians(ini.sigma_attitude0_deg)), 1e-6,
+                  np.full(3, cfg.init.sigma_gyro_bias0), np.full(3, cfg.init.sigma_accel_bias0),
+                  np.full(self.n - 15, np.radians(cfg.height.mount_sigma0_deg))]
         self.P = np.diag(s ** 2)
-        q = np.r_[np.full(3, cfg.accel_noise_density ** 2), np.full(3, cfg.gyro_noise_density ** 2),
-                  np.full(3, cfg.gyro_bias_walk ** 2), np.full(3, cfg.accel_bias_walk ** 2)]
+        q = np.r_[np.full(3, cfg.imu.accel_noise_density ** 2), np.full(3, cfg.imu.gyro_noise_density ** 2),
+                  np.full(3, cfg.imu.gyro_bias_walk ** 2), np.full(3, cfg.imu.accel_bias_walk ** 2)]
         self._qc = q  # continuous-time noise densities of [v, theta, bg, ba]
         #: stochastic clone of the error state at the last scan: cross covariance cov(dx_now, dx_clone) and
         #: the clone's own covariance (Roumeliotis & Burdick 2002)
         self.C = self.P.copy()
         self.Pc = self.P.copy()
         #: the actual error covariance under the ``actual_*`` noise (same gains), with its clone; None: P itself
-        self._separate = (cfg.actual_accel_noise_density is not None or cfg.actual_gyro_noise_density is not None
-                          or cfg.actual_velocity_cov_scale != 1.0)
+        cv = cfg.covariance
+        self._separate = (cv.accel_noise_density is not None or cv.gyro_noise_density is not None
+                          or cfg.covariance.velocity_scale != 1.0)
         self._qt = q.copy()
-        if cfg.actual_accel_noise_density is not None:
-            self._qt[0:3] = cfg.actual_accel_noise_density ** 2
-        if cfg.actual_gyro_noise_density is not None:
-            self._qt[3:6] = cfg.actual_gyro_noise_density ** 2
+        if cfg.covariance.accel_noise_density is not None:
+            self._qt[0:3] = cfg.covariance.accel_noise_density ** 2
+        if cfg.covariance.gyro_noise_density is not None:
+            self._qt[3:6] = cfg.covariance.gyro_noise_density ** 2
         self.Pt, self.Ct, self.Pct = self.P.copy(), self.P.copy(), self.P.copy()
         #: the last update's innovation and its covariance (before the gate)
         self.last_innovation: tuple[F64, F64] = (np.zeros(0), np.zeros((0, 0)))
@@ -283,9 +238,9 @@ class EkfRio:
         """Raise the noise densities to what a standstill showed (filter and actual: at least these)."""
         self._qc[0:3] = accel_noise_density ** 2
         self._qc[3:6] = gyro_noise_density ** 2
-        self._qt[0:3] = np.maximum(self._qt[0:3], accel_noise_density ** 2 if self.cfg.actual_accel_noise_density
+        self._qt[0:3] = np.maximum(self._qt[0:3], accel_noise_density ** 2 if self.cfg.covariance.accel_noise_density
                                    is None else self._qt[0:3])
-        self._qt[3:6] = np.maximum(self._qt[3:6], gyro_noise_density ** 2 if self.cfg.actual_gyro_noise_density
+        self._qt[3:6] = np.maximum(self._qt[3:6], gyro_noise_density ** 2 if self.cfg.covariance.gyro_noise_density
                                    is None else self._qt[3:6])
 
     def raise_actual_noise(self, accel_noise_density: float, gyro_noise_density: float) -> None:
@@ -342,7 +297,7 @@ class EkfRio:
         except np.linalg.LinAlgError:
             return False
         d2 = float(y @ Sinv_y)
-        if d2 > chi2.ppf(self.cfg.gate_probability, df=len(y)):
+        if d2 > chi2.ppf(self.cfg.velocity.gate_probability, df=len(y)):
             return False
         K = np.linalg.solve(S, H @ self.P).T  # P H^T S^-1 (S symmetric)
         if only is not None:  # a Schmidt (consider) update: the other states keep their means; Joseph stays exact
@@ -356,13 +311,9 @@ class EkfRio:
         # the clone is the pose written at the last scan, never corrected afterwards: its error stays the
         # filtered one (Pc fixed) and only the cross covariance moves, cov(dx+, dc) = (I - K H) C. (Reducing Pc
         # by (H C)^T S^-1 (H C) would describe a clone whose mean is corrected too, i.e. a smoothed previous pose.)
-        if self.cfg.smoothed_clone:
-            HC = H @ self.C
-            self.Pc = self.Pc - HC.T @ np.linalg.solve(S, HC)
-            self.Pc = 0.5 * (self.Pc + self.Pc.T)
         self.C = IKH @ self.C
         if self._separate:  # the same gain on the actual error: Joseph form with the actual measurement noise
-            Rt = Rm * self.cfg.actual_velocity_cov_scale if scale_actual else Rm
+            Rt = Rm * self.cfg.covariance.velocity_scale if scale_actual else Rm
             self.Pt = IKH @ self.Pt @ IKH.T + K @ Rt @ K.T
             self.Pt = 0.5 * (self.Pt + self.Pt.T)
             self.Ct = IKH @ self.Ct
@@ -396,7 +347,7 @@ class EkfRio:
         """Zero vertical velocity (world z), std ``sigma``."""
         H = np.zeros((1, self.n))
         H[0, 5] = 1.0
-        only = np.r_[2, 5, 15:self.n] if self.cfg.level_schmidt else None
+        only = np.r_[2, 5, 15:self.n] if self.cfg.height.level_schmidt else None
         return self._correct(np.array([-self.v[2]]), H, np.array([[sigma * sigma]]), only=only)
 
     def update_zero_rate(self, gyro_mean: F64, sigma: float) -> bool:
@@ -436,7 +387,7 @@ def gravity_aligned(acc_mean: F64) -> F64:
 
 
 def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArray[np.int64], vel: F64, cov: F64,
-            dims: npt.NDArray[np.integer], valid: npt.NDArray[np.bool_], imu_from_radar: F64, cfg: EkfConfig
+            dims: npt.NDArray[np.integer], valid: npt.NDArray[np.bool_], imu_from_radar: F64, cfg: OdometryParams
             ) -> EkfResult:
     """Run the filter over a whole sequence; poses (world <- imu) at every scan time.
 
@@ -459,7 +410,7 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
         return out
     s0 = int(starts[0])
     t0 = scan_t[s0]
-    win = (imu_t >= t0 - round(cfg.init_window_s * 1e9)) & (imu_t <= t0 + round(cfg.init_window_s * 1e9))
+    win = (imu_t >= t0 - round(cfg.init.window_s * 1e9)) & (imu_t <= t0 + round(cfg.init.window_s * 1e9))
     if not win.any():
         win = np.argsort(np.abs(imu_t - t0))[:10]
     k = int(np.searchsorted(imu_t, t0, side="right") - 1)
@@ -467,24 +418,24 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
     v_imu = R_ir @ vel[s0] - np.cross(w0, t_ir)
     f0 = acc[win].mean(axis=0)
     nxt = starts[1] if len(starts) > 1 else None
-    if cfg.init_motion_compensation and nxt is not None and (scan_t[nxt] - t0) < 1e9:
+    if cfg.init.motion_compensation and nxt is not None and (scan_t[nxt] - t0) < 1e9:
         # specific force = kinematic acceleration - gravity: remove d(v_body)/dt + w x v_body first
         v1 = R_ir @ vel[nxt] - np.cross(w0, t_ir)
         dv = (v1 - v_imu) / ((scan_t[nxt] - t0) * 1e-9)
         if np.all(np.isfinite(dv)):
             f0 = f0 - dv - np.cross(w0, v_imu)
     still = None
-    if cfg.standstill_init:
-        moving = radar_moving(vel, cov * cfg.velocity_cov_scale, valid, cfg.standstill_max_speed)
+    if cfg.standstill.enabled:
+        moving = radar_moving(vel, cov * cfg.velocity.cov_scale, valid, cfg.standstill.max_speed)
         still = find_standstill(imu_t, acc, gyro, int(t0), scan_t, moving, cfg)
     if still is not None:
         R0 = gravity_aligned(still.accel_mean)
         ekf = EkfRio(cfg, R0, np.zeros(3))
         ekf.bg = still.gyro_mean.copy()
         f = still.accel_mean
-        ekf.ba = (np.linalg.norm(f) - cfg.gravity) * f / np.linalg.norm(f)
-        ekf.set_noise(max(cfg.accel_noise_density, still.accel_noise_density),
-                      max(cfg.gyro_noise_density, still.gyro_noise_density))
+        ekf.ba = (np.linalg.norm(f) - cfg.imu.gravity) * f / np.linalg.norm(f)
+        ekf.set_noise(max(cfg.imu.accel_noise_density, still.accel_noise_density),
+                      max(cfg.imu.gyro_noise_density, still.gyro_noise_density))
         # the bias is the mean of `samples` rates: its std is the rate noise std over sqrt(samples)
         rate = still.samples / max((still.t1_ns - still.t0_ns) * 1e-9, 1e-9)
         g_sd = still.gyro_noise_density * np.sqrt(rate / max(still.samples, 1))
@@ -528,7 +479,8 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
             if k + 1 < N and tc >= imu_t[k + 1]:
                 k += 1
         if s > s0 and valid[s]:
-            c = cov[s] * cfg.velocity_cov_scale if cfg.use_estimator_covariance else np.eye(3) * cfg.velocity_sigma ** 2
+            vp = cfg.velocity
+            c = cov[s] * vp.cov_scale if vp.use_estimator_covariance else np.eye(3) * vp.sigma_mps ** 2
             c = np.where(np.isfinite(c), c, 0.0)
             rows = chi_rows.get(int(dims[s]), np.arange(3))
             w_k = gyro[min(k, N - 1)]
@@ -548,12 +500,13 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
             if not ok:
                 in_row += 1
                 rejected_nu.append((rows, *ekf.last_innovation))
-                del rejected_nu[:-cfg.recover_after]
-                if in_row >= cfg.recover_after and cfg.recover_consistent and not innovations_agree(
-                        rejected_nu, cfg.gate_probability):
+                del rejected_nu[:-cfg.recovery.after]
+                if in_row >= cfg.recovery.after and cfg.recovery.consistent and not innovations_agree(
+                        rejected_nu, cfg.velocity.gate_probability):
                     n_scattered += 1  # the radar's outliers: kept rejected, no inflation
-                elif in_row >= cfg.recover_after:
-                    ekf.inflate(cfg.recover_sigma_v, cfg.recover_sigma_attitude, cfg.recover_sigma_accel_bias)
+                elif in_row >= cfg.recovery.after:
+                    rc = cfg.recovery
+                    ekf.inflate(rc.sigma_v, np.radians(rc.sigma_attitude_deg), rc.sigma_accel_bias)
                     n_recover += 1
                     recover_t.append(int(scan_t[s]))
                     out.recovered[s] = True
@@ -566,10 +519,10 @@ def run_ekf(imu_t: npt.NDArray[np.int64], acc: F64, gyro: F64, scan_t: npt.NDArr
             else:
                 n_rej += 1
                 out.rejected[s] = True
-            if cfg.level_velocity_sigma > 0:  # the gate rejects it where the platform really climbs: counted
-                n_level_rej += int(not ekf.update_level(cfg.level_velocity_sigma))
-            if cfg.zero_rate_update and run_len[s] >= cfg.zero_rate_min_scans and g_dt > 0:
-                n_zaru += int(ekf.update_zero_rate(g_sum / g_dt, cfg.zero_rate_sigma))
+            if cfg.height.level_velocity_sigma > 0:  # the gate rejects it where the platform really climbs: counted
+                n_level_rej += int(not ekf.update_level(cfg.height.level_velocity_sigma))
+            if cfg.velocity.zero_rate_update and run_len[s] >= cfg.velocity.zero_rate_min_scans and g_dt > 0:
+                n_zaru += int(ekf.update_zero_rate(g_sum / g_dt, cfg.velocity.zero_rate_sigma))
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = ekf.R, ekf.p
         out.T_world_imu[s] = T

@@ -14,11 +14,10 @@ odometry, SLAM and ground truth share one world frame; without ground truth, or 
 from __future__ import annotations
 
 import json
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from pydantic import Field
 
 from core.errors import UserError
 from core.geometry import interpolate_poses, roll_pitch_of, yaw_of
@@ -26,7 +25,8 @@ from core.stage import Stage, StageContext, StageParams
 from core.trajectory_metrics import drift, increment_nees, se2_compose_anchor, se2_increments
 from schemas.artifacts import ODOMETRY_COV_COLS, ODOMETRY_COV_IDX
 from schemas.io import read_artifact, write_artifact
-from stages.odometry.ekf_rio import EkfConfig, increment_covariance, run_ekf
+from stages.odometry.ekf_rio import increment_covariance, run_ekf
+from stages.odometry.params import OdometryParams
 
 POSE_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 #: the increment covariance's columns (body frame of the previous scan: dx, dy, dyaw)
@@ -43,83 +43,6 @@ def bag_increment_covariance(u: npt.NDArray[np.float64], std_xy: float, rel_tran
     out[:, 2, 2] = (std_yaw + rot_per_trans * trans) ** 2
     out[:1] = 0.0
     return out
-
-
-class OdometryParams(StageParams):
-    """Parameters of the `odometry` stage (EKF-RIO noise model and anchoring)."""
-
-    source: Literal["ekf", "bag"] = Field("ekf", description="'ekf': EKF-RIO; 'bag': the log's odometry topic")
-    anchor: Literal["groundtruth", "origin"] = Field(
-        "groundtruth", description="start at the ground-truth pose of the first scan, or at (0, 0, 0)")
-    gravity: float = Field(9.80665, gt=0, description="gravity magnitude, m/s^2")
-    accel_noise_density: float = Field(
-        0.2, gt=0, description="accelerometer process noise, m/s^2/sqrt(Hz): MEMS white noise is ~0.002, the rest "
-                               "covers unmodelled vibration (heel strikes, engines) and misalignment")
-    gyro_noise_density: float = Field(0.002, gt=0, description="gyro white noise, rad/s/sqrt(Hz)")
-    accel_bias_walk: float = Field(1e-3, ge=0, description="accelerometer bias random walk, m/s^2/sqrt(s)")
-    gyro_bias_walk: float = Field(1e-4, ge=0, description="gyro bias random walk, rad/s/sqrt(s)")
-    sigma_v0: float = Field(0.2, gt=0, description="initial velocity std, m/s")
-    sigma_attitude0_deg: float = Field(2.0, gt=0, description="initial roll/pitch std, degrees")
-    sigma_gyro_bias0: float = Field(0.005, gt=0, description="initial gyro bias std, rad/s (MEMS turn-on bias)")
-    sigma_accel_bias0: float = Field(0.1, gt=0, description="initial accelerometer bias std, m/s^2")
-    init_window_s: float = Field(0.2, gt=0, description="IMU window (each side of the first scan) for gravity")
-    use_estimator_covariance: bool = Field(True, description="use the ego-velocity LSQ covariance as R")
-    velocity_cov_scale: float = Field(1.0, gt=0, description="scales the ego-velocity covariance")
-    velocity_sigma_mps: float = Field(0.1, gt=0, description="fixed ego-velocity std when not using the estimator's")
-    gate_probability: float = Field(0.999, gt=0, lt=1, description="chi-square gate of the velocity update")
-    zero_rate_update: bool = Field(True, description="zero angular-rate update on zero-velocity scans")
-    zero_rate_sigma: float = Field(0.002, gt=0, description="std of the zero angular-rate pseudo-measurement, rad/s")
-    zero_rate_min_scans: int = Field(5, ge=1, le=100_000,
-                                     description="consecutive zero-velocity scans before a zero-rate update")
-    init_motion_compensation: bool = Field(
-        True, description="remove the kinematic acceleration (from the first ego-velocities) before gravity alignment")
-    standstill_init: bool = Field(True, description="start from an initial standstill when there is one (attitude, "
-                                                    "biases and noise floors from it)")
-    standstill_min_s: float = Field(1.0, gt=0, description="shortest initial standstill used, s")
-    standstill_accel_std: float = Field(0.3, gt=0, description="standstill: largest specific-force std per axis in "
-                                                               "a 0.2 s window, m/s^2")
-    standstill_gyro_std: float = Field(0.03, gt=0, description="standstill: largest rate std per axis, rad/s")
-    standstill_max_speed: float = Field(0.15, gt=0, description="standstill: largest radar speed, m/s")
-    standstill_accel_change: float = Field(0.15, gt=0, description="standstill: largest change of the mean "
-                                                                   "specific force from the first window, m/s^2")
-    standstill_gyro_change: float = Field(0.01, gt=0, description="standstill: largest change of the mean rate "
-                                                                  "from the first window, rad/s")
-    recover_after: int = Field(3, ge=1, le=100_000,
-                               description="velocity updates rejected in a row before the covariance is "
-                                                    "inflated and the update retried")
-    recover_consistent: bool = Field(True, description="recover only when the rejected velocity innovations agree "
-                                     "with one another (the filter is off); scattered ones are the radar's outliers "
-                                     "and are only rejected")
-    recover_sigma_v: float = Field(0.5, gt=0, description="velocity std after a recovery, m/s")
-    recover_sigma_attitude_deg: float = Field(5.0, gt=0, description="attitude std after a recovery, degrees")
-    recover_sigma_accel_bias: float = Field(0.3, gt=0, description="accelerometer bias std after a recovery, m/s^2")
-    mount_sigma0_deg: float = Field(
-        0.0, ge=0, le=20, description="estimate the radar mount's rotation error with this prior std per axis, degrees "
-                                      "(a pitched radar reads forward speed as climb); 0: trust the stated extrinsic")
-    level_velocity_sigma: float = Field(
-        0.0, ge=0, description="a zero vertical-velocity pseudo-measurement at every scan with this std, m/s (the "
-                               "platform moves on level floors on average); 0: none")
-    level_schmidt: bool = Field(
-        True, description="the level pseudo-measurement moves only the height, the vertical velocity and the mount "
-                          "(a Schmidt update: attitude and biases keep their means); false: a full update")
-    reject_warn_share: float = Field(0.1, ge=0, le=1, description="warn when more than this share of velocity "
-                                                                  "updates is rejected by the gate")
-    cov_accel_noise_density: float | None = Field(
-        2.0e-3, gt=0, description="increment covariance: the accelerometer white noise it assumes, m/s^2/sqrt(Hz) "
-                                  "(datasheet, low-cost MEMS: BMI088 ~190 ug/sqrt(Hz)); null: accel_noise_density")
-    cov_gyro_noise_density: float | None = Field(
-        2.5e-4, gt=0, description="increment covariance: the gyro white noise it assumes, rad/s/sqrt(Hz) (datasheet, "
-                                  "BMI088 0.014 deg/s/sqrt(Hz)); null: gyro_noise_density")
-    cov_velocity_scale: float = Field(
-        0.125, gt=0, description="increment covariance: factor on the ego-velocity covariance it assumes (chosen on "
-                               "the calibration runs calib_demo_drift and calib_hallway_loop_drift only)")
-    increment_cov_scale: float = Field(
-        1.0, gt=0, description="factor on the increment covariance written (the NEES check: chosen on the "
-                               "calibration runs only)")
-    bag_std_xy: float = Field(0.005, gt=0, description="source=bag: increment std on x and y per scan, m")
-    bag_rel_trans: float = Field(0.05, ge=0, description="source=bag: increment std on x and y per metre, m/m")
-    bag_std_yaw: float = Field(0.001, gt=0, description="source=bag: increment yaw std per scan, rad")
-    bag_rot_per_trans: float = Field(0.03, ge=0, description="source=bag: increment yaw std per metre, rad/m")
 
 
 class OdometryStage(Stage):
@@ -140,16 +63,17 @@ class OdometryStage(Stage):
         base_from_imu = np.asarray(calib["base_from_imu"], dtype=np.float64)
         base_from_radar = np.asarray(calib["base_from_radar"], dtype=np.float64)
         if p.source == "bag":
-            ekf_only = [f"{k}={getattr(p, k):g}" for k in ("mount_sigma0_deg", "level_velocity_sigma") if getattr(p, k)]
+            ekf_only = [f"height.{k}={getattr(p.height, k):g}" for k in ("mount_sigma0_deg", "level_velocity_sigma")
+                        if getattr(p.height, k)]
             if ekf_only:
                 ctx.warn(f"odometry.{', odometry.'.join(ekf_only)}: EKF settings, unused with odometry.source=bag "
                          f"(the log's odometry topic is taken as it is)")
             scans, scan_t, T_wb, valid = self._from_bag(ctx)
             u = se2_increments(np.stack([T_wb[:, 0, 3], T_wb[:, 1, 3], yaw_of(T_wb[:, :3, :3])], axis=1))
-            inc_cov = bag_increment_covariance(u, p.bag_std_xy, p.bag_rel_trans, p.bag_std_yaw, p.bag_rot_per_trans)
+            inc_cov = bag_increment_covariance(u, p.bag.std_xy, p.bag.rel_trans, p.bag.std_yaw, p.bag.rot_per_trans)
         else:
             scans, scan_t, T_wb, valid, inc_cov = self._from_ekf(ctx, base_from_imu, base_from_radar)
-            inc_cov = inc_cov * p.increment_cov_scale
+            inc_cov = inc_cov * p.covariance.scale
         x, y, yaw = T_wb[:, 0, 3], T_wb[:, 1, 3], yaw_of(T_wb[:, :3, :3])
         z, roll, pitch = T_wb[:, 2, 3].copy(), *roll_pitch_of(T_wb[:, :3, :3])
 
@@ -210,7 +134,7 @@ class OdometryStage(Stage):
         names = ego.column_names
         valid = ego["valid"].to_numpy() if "valid" in names else np.isfinite(vel).all(axis=1)
         dims = ego["dims"].to_numpy() if "dims" in names else np.full(len(scans), 3)
-        cov = np.tile(np.eye(3) * p.velocity_sigma_mps ** 2, (len(scans), 1, 1))
+        cov = np.tile(np.eye(3) * p.velocity.sigma_mps ** 2, (len(scans), 1, 1))
         if all(f"cov_{a}{b}" in names for a, b in ("xx", "xy", "xz", "yy", "yz", "zz")):
             for a, b in ("xx", "xy", "xz", "yy", "yz", "zz"):
                 i, j = "xyz".index(a), "xyz".index(b)
@@ -218,27 +142,8 @@ class OdometryStage(Stage):
         imu_t = imu["t_ns"].to_numpy()
         acc = np.stack([imu[c].to_numpy() for c in ("ax", "ay", "az")], axis=1)
         gyro = np.stack([imu[c].to_numpy() for c in ("gx", "gy", "gz")], axis=1)
-        cfg = EkfConfig(
-            gravity=p.gravity, accel_noise_density=p.accel_noise_density, gyro_noise_density=p.gyro_noise_density,
-            accel_bias_walk=p.accel_bias_walk, gyro_bias_walk=p.gyro_bias_walk, sigma_v0=p.sigma_v0,
-            sigma_attitude0=np.radians(p.sigma_attitude0_deg), sigma_gyro_bias0=p.sigma_gyro_bias0,
-            sigma_accel_bias0=p.sigma_accel_bias0, init_window_s=p.init_window_s,
-            velocity_cov_scale=p.velocity_cov_scale, velocity_sigma=p.velocity_sigma_mps,
-            use_estimator_covariance=p.use_estimator_covariance, gate_probability=p.gate_probability,
-            zero_rate_update=p.zero_rate_update, zero_rate_sigma=p.zero_rate_sigma,
-            zero_rate_min_scans=p.zero_rate_min_scans,
-            init_motion_compensation=p.init_motion_compensation, standstill_init=p.standstill_init,
-            standstill_min_s=p.standstill_min_s, standstill_accel_std=p.standstill_accel_std,
-            standstill_gyro_std=p.standstill_gyro_std, standstill_max_speed=p.standstill_max_speed,
-            standstill_accel_change=p.standstill_accel_change, standstill_gyro_change=p.standstill_gyro_change,
-            recover_after=p.recover_after, recover_consistent=p.recover_consistent, recover_sigma_v=p.recover_sigma_v,
-            recover_sigma_attitude=np.radians(p.recover_sigma_attitude_deg),
-            recover_sigma_accel_bias=p.recover_sigma_accel_bias, actual_accel_noise_density=p.cov_accel_noise_density,
-            actual_gyro_noise_density=p.cov_gyro_noise_density, actual_velocity_cov_scale=p.cov_velocity_scale,
-            mount_sigma0=np.radians(p.mount_sigma0_deg), level_velocity_sigma=p.level_velocity_sigma,
-            level_schmidt=p.level_schmidt)
         imu_from_radar = np.linalg.inv(base_from_imu) @ base_from_radar
-        res = run_ekf(imu_t, acc, gyro, scan_t, vel, cov, dims, valid, imu_from_radar, cfg)
+        res = run_ekf(imu_t, acc, gyro, scan_t, vel, cov, dims, valid, imu_from_radar, p)
         if not res.initialized.any():
             t0 = min(int(imu_t[0]), int(scan_t[0])) if len(scan_t) else int(imu_t[0])
             span = (f"radar scans {(scan_t[0] - t0) * 1e-9:.1f}-{(scan_t[-1] - t0) * 1e-9:.1f} s, "
@@ -251,7 +156,7 @@ class OdometryStage(Stage):
         ctx.stats["ekf"] = res.stats
         ctx.stats["gyro_bias_final"] = [round(float(b), 6) for b in res.gyro_bias[-1]]
         ctx.stats["accel_bias_final"] = [round(float(b), 5) for b in res.accel_bias[-1]]
-        if p.mount_sigma0_deg > 0:
+        if p.height.mount_sigma0_deg > 0:
             ctx.stats["mount_error_deg"] = [round(float(np.degrees(v)), 3) for v in res.mount_error[-1]]
             ctx.stats["mount_error_sigma_deg"] = [round(float(np.degrees(v)), 3) for v in res.mount_sigma[-1]]
             ctx.console.print(f"[dim]odometry: radar mount rotation error (radar frame) "
@@ -270,12 +175,12 @@ class OdometryStage(Stage):
         if total and n_rej / total > p.reject_warn_share:
             ctx.warn(f"EKF: the chi-square gate rejected {n_rej} of {total} velocity updates "
                      f"({100 * n_rej / total:.0f} % > {100 * p.reject_warn_share:g} %): the IMU is noisier than "
-                     f"odometry.accel_noise_density={p.accel_noise_density:g} / gyro_noise_density="
-                     f"{p.gyro_noise_density:g}, or the radar-IMU extrinsic or clocks are off")
+                     f"odometry.imu.accel_noise_density={p.imu.accel_noise_density:g} / gyro_noise_density="
+                     f"{p.imu.gyro_noise_density:g}, or the radar-IMU extrinsic or clocks are off")
         if st["recoveries"] or st["reinitialisations"]:
             when = ", ".join(f"{(t - t0) * 1e-9:.1f}" for t in st["recovery_t_ns"][:8])
             more = " ..." if len(st["recovery_t_ns"]) > 8 else ""
-            ctx.warn(f"EKF: recovered {st['recoveries']} time(s) after {p.recover_after} rejected velocity updates "
+            ctx.warn(f"EKF: recovered {st['recoveries']} time(s) after {p.recovery.after} rejected velocity updates "
                      f"in a row (covariance inflated; at {when}{more} s)"
                      + (f", re-initialised {st['reinitialisations']} time(s) from a non-finite state"
                         if st["reinitialisations"] else ""))
@@ -283,10 +188,10 @@ class OdometryStage(Stage):
             ctx.console.print(f"[dim]odometry: {st['recoveries_declined']} rejection streak(s) of scattered "
                               f"ego-velocities (radar outliers) kept rejected, not recovered from[/]")
         n_level = st.get("level_rejected", 0)
-        if p.level_velocity_sigma > 0 and total and n_level / total > p.reject_warn_share:
-            ctx.warn(f"EKF: the level prior (odometry.level_velocity_sigma={p.level_velocity_sigma:g}) was rejected "
-                     f"by the gate at {n_level} of {total} scans: the platform climbs; set "
-                     f"odometry.level_velocity_sigma=0 for a log that is not level on average")
+        if p.height.level_velocity_sigma > 0 and total and n_level / total > p.reject_warn_share:
+            ctx.warn(f"EKF: the level prior (odometry.height.level_velocity_sigma={p.height.level_velocity_sigma:g}) "
+                     f"was rejected by the gate at {n_level} of {total} scans: the platform climbs; set "
+                     f"odometry.height.level_velocity_sigma=0 for a log that is not level on average")
         still = st.get("standstill")
         if still:
             ctx.console.print(f"[dim]odometry: started from a {still['seconds']} s standstill (gyro noise "
