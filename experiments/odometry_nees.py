@@ -45,7 +45,8 @@ def load(run: Path) -> tuple[F64, F64, F64, npt.NDArray[np.bool_], F64]:
     if not path.exists():
         raise UserError(f"{path}: no odometry run (pipeline run odometry --seq {run.name} --runs-dir {run.parent})")
     odo = read_artifact(path, "odometry")
-    scale = json.loads((run / "odometry" / "manifest.json").read_text())["params"].get("increment_cov_scale", 1.0)
+    params = json.loads((run / "odometry" / "manifest.json").read_text())["params"]
+    scale = params.get("covariance", {}).get("scale", 1.0)
     gt = read_artifact(run / "ingest" / "groundtruth.parquet", "groundtruth")
     if gt.num_rows < 2:
         raise UserError(f"{run / 'ingest' / 'groundtruth.parquet'}: no ground truth; the NEES check needs it")

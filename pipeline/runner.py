@@ -31,7 +31,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from core.errors import UserError
-from core.stage import Stage, StageContext, StageParams
+from core.stage import Stage, StageContext, StageParams, flatten_params
 from pipeline import __version__
 from pipeline.config import Overrides, Workflow, build_params, check_param_names
 from pipeline.resources import available_memory, folder_size, free_space, human_bytes, is_disk_full
@@ -269,8 +269,8 @@ class Runner:
 
     def _why_stale(self, name: str, manifest: dict[str, Any]) -> str:
         reasons = []
-        now = self.params(name).model_dump(mode="json")
-        before = manifest.get("params", {})
+        now = flatten_params(self.params(name).model_dump(mode="json"))  # group members named one by one
+        before = flatten_params(manifest.get("params", {}))
         changed = [f"{k} {before.get(k)!r}->{now.get(k)!r}" for k in sorted(set(now) | set(before))
                    if json.dumps(now.get(k), sort_keys=True) != json.dumps(before.get(k), sort_keys=True)]
         if changed:

@@ -47,7 +47,8 @@ class SweepPoint:
 
 
 def flatten_sweep(sweep: Mapping[str, Any], prefix: str = "") -> dict[str, list[Any]]:
-    """``{"stage.param": values}`` from a ``[sweep]`` table written with quoted or dotted keys."""
+    """``{"stage.param": values}`` from a ``[sweep]`` table written with quoted or dotted keys (a group's member:
+    ``"stage.group.param"``)."""
     out: dict[str, list[Any]] = {}
     for key, value in sweep.items():
         name = f"{prefix}.{key}" if prefix else str(key)
@@ -60,8 +61,8 @@ def flatten_sweep(sweep: Mapping[str, Any], prefix: str = "") -> dict[str, list[
                 raise UserError(f"[sweep] {name}: each entry must be a non-empty table of parameter = value")
             out[name] = [dict(v) for v in value]
             continue
-        if name.count(".") != 1:
-            raise UserError(f"[sweep] {name}: expected 'stage.param' = [values]")
+        if "." not in name:
+            raise UserError(f"[sweep] {name}: expected 'stage.param' (or 'stage.group.param') = [values]")
         if not isinstance(value, list) or not value:
             raise UserError(f"[sweep] {name}: expected a non-empty list of values, got {value!r}")
         out[name] = list(value)
@@ -91,7 +92,7 @@ def _slug(value: Any) -> str:
 
 
 def point_name(point: Overrides) -> str:
-    """A readable folder name: ``gp_lengthscale=2,gp_signal_variance=16`` (stage prefixes kept when ambiguous)."""
+    """A readable folder name: ``gp_lengthscale_m=2,gp_signal_variance=16`` (stage prefixes kept when ambiguous)."""
     params = [(s, k) for s, d in point.items() for k in d]
     short = [k for _, k in params]
     parts = []

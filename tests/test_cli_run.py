@@ -187,7 +187,7 @@ def test_both_alignments_equal_evo_on_the_tum_export(run: tuple[Path, Path], tmp
     r = cli("export", "--seq", SEQ, "--runs-dir", str(run[0]), "--format", "tum", "--out", str(out))
     assert r.returncode == 0, r.stderr
     n_align = 20  # the paper's protocol on the first 20 of the 6 s run's ~59 frames: the two alignments differ
-    p = EvaluateParams(sections=["trajectory"], n_align=n_align)
+    p = EvaluateParams(sections=["trajectory"], trajectory={"n_align": n_align})  # type: ignore[arg-type]
     ctx = make_context(run[0], SEQ, "evaluate", p, list(STAGE.input_stages(p)), tmp_path / "evaluate")
     STAGE.run(ctx)
     ctx.close()

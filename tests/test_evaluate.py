@@ -259,7 +259,8 @@ def test_radar_points_land_on_the_walls_with_ground_truth(tmp_path: Path) -> Non
 def test_stage_writes_metrics_report_figures_and_rerun(tmp_path: Path) -> None:
     runs = tmp_path / "runs"
     write_synthetic_run(runs, duration=20.0)
-    p = EvaluateParams(feature_counts=[16, 64], methods=["hilbert_gp", "rff", "sparse", "nystrom", "grid"])
+    p = EvaluateParams(mapping={"feature_counts": [16, 64],  # type: ignore[arg-type]
+                                "methods": ["hilbert_gp", "rff", "sparse", "nystrom", "grid"]})
     out = tmp_path / "out"
     ctx = make_context(runs, "synth", "evaluate", p, list(STAGE.input_stages(p)), out)
     STAGE.run(ctx)
@@ -336,7 +337,8 @@ def test_manifest_fallbacks_read_the_slam_parameters(tmp_path: Path) -> None:
 
 def test_each_fit_has_its_own_random_stream() -> None:
     """rff@16 is the same number whether or not other fits ran in the same call (sweeps rely on it)."""
-    from stages.evaluate.mapping import BaselineConfig, GPConfig, auc_suite
+    from stages.evaluate.mapping import GPConfig, auc_suite
+    from stages.evaluate.params import BaselineParams
 
     rng = np.random.default_rng(0)
     pts = rng.uniform(-4, 4, (1500, 2))
@@ -345,7 +347,7 @@ def test_each_fit_has_its_own_random_stream() -> None:
     s = LabelledSamples(pts, lab, scan)
     train, test = s.select(scan % 5 != 0), s.select(scan % 5 == 0)
     gp = GPConfig((5.0, 5.0), (0.0, 0.0), 1.0, 4.0, 0.36)
-    base = BaselineConfig(1.0)
+    base = BaselineParams(lengthscale_m=1.0)
     alone = auc_suite(train, test, gp, base, [16], ["rff", "nystrom"], seed=3)
     both = auc_suite(train, test, gp, base, [36, 16], ["sparse", "nystrom", "rff"], seed=3)
     pick = {(r.method, r.features): r.auc for r in both}
@@ -362,7 +364,8 @@ def test_sweep_configurations_of_the_mapping_section(tmp_path: Path, headline: b
     """The two sweep workflows' settings: per-count rows only (Fig. 6) or the headline map only (Fig. 7)."""
     runs = tmp_path / "runs"
     write_synthetic_run(runs, duration=10.0, with_maps=False)
-    p = EvaluateParams(sections=["mapping"], headline=headline, feature_counts=counts, methods=methods)  # type: ignore[arg-type]
+    p = EvaluateParams(sections=["mapping"], mapping={"headline": headline, "feature_counts": counts,
+                                                       "methods": methods})  # type: ignore[arg-type]
     out = tmp_path / "out"
     ctx = make_context(runs, "synth", "evaluate", p, list(STAGE.input_stages(p)), out)
     STAGE.run(ctx)

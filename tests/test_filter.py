@@ -61,9 +61,10 @@ def test_filter_stage_outputs_and_measurements(circle, tmp_path: Path) -> None:
 
 def test_filter_parameters_change_the_result(circle, tmp_path: Path) -> None:
     bag, _ = circle
-    out = run_stages(bag, tmp_path / "runs", ["filter"], {"filter": {"track_frames": 0, "min_intensity": -100.0}})
+    loose = {"filter": {"tracking": {"frames": 0}, "points": {"min_intensity": -100.0}}}
+    out = run_stages(bag, tmp_path / "runs", ["filter"], loose)
     no_track = json.loads((out / "filter" / "manifest.json").read_text())["stats"]
-    out2 = run_stages(bag, tmp_path / "runs2", ["filter"], {"filter": {"track_frames": 3}})
+    out2 = run_stages(bag, tmp_path / "runs2", ["filter"], {"filter": {"tracking": {"frames": 3}}})
     strict = json.loads((out2 / "filter" / "manifest.json").read_text())["stats"]
     assert no_track["kept"] > strict["kept"]
     assert no_track["labels"]["ghost_rejected"] < strict["labels"]["ghost_rejected"]

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from stages.filter import ego_velocity as ev
+from stages.filter.params import EgoVelocityParams
 
 
 def _scan(rng: np.random.Generator, v: np.ndarray, n: int = 60, outliers: float = 0.35, noise: float = 0.02,
@@ -21,8 +22,8 @@ def _scan(rng: np.random.Generator, v: np.ndarray, n: int = 60, outliers: float 
 
 def test_ransac_iteration_count_matches_reve() -> None:
     # ln(1 - 0.9999) / ln(1 - 0.6^3) = 37.9
-    assert ev.ransac_iterations(ev.EgoVelocityConfig()) == 38
-    assert ev.ransac_iterations(ev.EgoVelocityConfig(outlier_probability=0.1)) == 8  # 9.21 / 1.306 = 7.05
+    assert ev.ransac_iterations(EgoVelocityParams()) == 38
+    assert ev.ransac_iterations(EgoVelocityParams(outlier_probability=0.1)) == 8  # 9.21 / 1.306 = 7.05
 
 
 def test_sign_convention_approaching_is_negative() -> None:
@@ -30,7 +31,7 @@ def test_sign_convention_approaching_is_negative() -> None:
     # moving forward at 1 m/s: targets ahead approach, d = -r.v
     dop = -dirs @ np.array([1.0, 0.0, 0.0])
     assert dop[0] == -1.0
-    est = ev.estimate(dirs, dop, ev.EgoVelocityConfig(), np.random.default_rng(0))
+    est = ev.estimate(dirs, dop, EgoVelocityParams(), np.random.default_rng(0))
     assert est.valid and est.dims == 3
     np.testing.assert_allclose(est.v, [1.0, 0.0, 0.0], atol=1e-9)
 
@@ -40,7 +41,7 @@ def test_ransac_lsq_matches_the_oracle_least_squares(seed: int) -> None:
     rng = np.random.default_rng(seed)
     v = rng.uniform(-1.5, 1.5, 3) * np.array([1, 1, 0.3])
     dirs, dop, true_inliers = _scan(rng, v)
-    est = ev.estimate(dirs, dop, ev.EgoVelocityConfig(), np.random.default_rng(seed))
+    est = ev.estimate(dirs, dop, EgoVelocityParams(), np.random.default_rng(seed))
     assert est.valid and est.dims == 3
     # independent reference: least squares on the points known to be static
     A = -dirs[true_inliers]
@@ -57,7 +58,7 @@ def test_ransac_lsq_matches_the_oracle_least_squares(seed: int) -> None:
 def test_zero_velocity_detection() -> None:
     rng = np.random.default_rng(3)
     dirs, dop, _ = _scan(rng, np.zeros(3), outliers=0.2, noise=0.01)
-    est = ev.estimate(dirs, dop, ev.EgoVelocityConfig(), rng)
+    est = ev.estimate(dirs, dop, EgoVelocityParams(), rng)
     assert est.valid and est.dims == 0
     np.testing.assert_array_equal(est.v, 0.0)
 
@@ -66,7 +67,7 @@ def test_planar_scan_solves_2d_with_vz_zero() -> None:
     rng = np.random.default_rng(4)
     v = np.array([0.8, -0.4, 0.0])
     dirs, dop, _ = _scan(rng, v, elevation=0.0, outliers=0.2)
-    est = ev.estimate(dirs, dop, ev.EgoVelocityConfig(), rng)
+    est = ev.estimate(dirs, dop, EgoVelocityParams(), rng)
     assert est.valid and est.dims == 2 and est.v[2] == 0.0
     assert np.linalg.norm(est.v - v) < 0.03
     assert np.isinf(est.cov[2, 2])
@@ -75,15 +76,15 @@ def test_planar_scan_solves_2d_with_vz_zero() -> None:
 def test_too_few_points_is_invalid() -> None:
     rng = np.random.default_rng(5)
     dirs, dop, _ = _scan(rng, np.array([1.0, 0, 0]), n=4, outliers=0.0)
-    est = ev.estimate(dirs, dop, ev.EgoVelocityConfig(), rng)
+    est = ev.estimate(dirs, dop, EgoVelocityParams(), rng)
     assert not est.valid and np.isnan(est.v).all() and not est.inliers.any()
 
 
 def test_deterministic_for_a_seed() -> None:
     rng = np.random.default_rng(6)
     dirs, dop, _ = _scan(rng, np.array([1.0, 0.3, 0.0]), outliers=0.45)
-    a = ev.estimate(dirs, dop, ev.EgoVelocityConfig(), np.random.default_rng(1))
-    b = ev.estimate(dirs, dop, ev.EgoVelocityConfig(), np.random.default_rng(1))
+    a = ev.estimate(dirs, dop, EgoVelocityParams(), np.random.default_rng(1))
+    b = ev.estimate(dirs, dop, EgoVelocityParams(), np.random.default_rng(1))
     np.testing.assert_array_equal(a.v, b.v)
 
 
@@ -96,6 +97,6 @@ def test_sparse_ground_scan_prefers_the_planar_model() -> None:
                     [4.087, 3.821, 1.327, 2.4], [7.772, 7.183, -4.17, 0.2]])
     dirs, _ = ev.unit_directions(pts[:, :3])
     truth = np.array([1.2146, 0.006, 0.0019])
-    errors = [np.linalg.norm(ev.estimate(dirs, pts[:, 3], ev.EgoVelocityConfig(), np.random.default_rng(s)).v - truth)
+    errors = [np.linalg.norm(ev.estimate(dirs, pts[:, 3], EgoVelocityParams(), np.random.default_rng(s)).v - truth)
               for s in range(100)]
     assert np.mean(np.array(errors) < 0.2) > 0.95

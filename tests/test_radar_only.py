@@ -72,7 +72,7 @@ def _records() -> list[dict]:
 
 def test_radar_only_rows_pair_each_map_with_the_trajectory_it_was_built_along() -> None:
     assert source_of('{"voxel.trajectory": "slam", "voxel.slam_method": ""}') == "slam"
-    assert source_of('{"evaluate.gp_lengthscale": 2}') is None
+    assert source_of('{"evaluate.gp_lengthscale_m": 2}') is None
     assert source_of({"voxel.trajectory": "slam", "voxel.slam_method": "g", "voxel.attitude": "level"}) == "g (level)"
     rows = {r["source"]: r for r in radar_only_rows(_records())}
     assert list(rows) == ["groundtruth", "odometry", "rich_slam"]

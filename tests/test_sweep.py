@@ -22,13 +22,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # -- expansion (pure) --------------------------------------------------------------------------------------------
 def test_expand_is_the_cartesian_product_first_key_slowest() -> None:
-    sweep = {"evaluate.gp_lengthscale": [2, 20], "evaluate.gp_signal_variance": [1, 16, 64]}
+    sweep = {"evaluate.gp_lengthscale_m": [2, 20], "evaluate.gp_signal_variance": [1, 16, 64]}
     pts = expand_sweep(sweep)
     assert len(pts) == 6
-    assert pts[0] == {"evaluate": {"gp_lengthscale": 2, "gp_signal_variance": 1}}
-    assert pts[2] == {"evaluate": {"gp_lengthscale": 2, "gp_signal_variance": 64}}
-    assert pts[3] == {"evaluate": {"gp_lengthscale": 20, "gp_signal_variance": 1}}
-    assert point_name(pts[4]) == "gp_lengthscale=20,gp_signal_variance=16"
+    assert pts[0] == {"evaluate": {"gp_lengthscale_m": 2, "gp_signal_variance": 1}}
+    assert pts[2] == {"evaluate": {"gp_lengthscale_m": 2, "gp_signal_variance": 64}}
+    assert pts[3] == {"evaluate": {"gp_lengthscale_m": 20, "gp_signal_variance": 1}}
+    assert point_name(pts[4]) == "gp_lengthscale_m=20,gp_signal_variance=16"
 
 
 def test_dotted_and_quoted_keys_and_list_values() -> None:
@@ -67,7 +67,7 @@ def test_bad_sweep_tables() -> None:
 
 
 def test_shipped_sweep_workflows_expand_against_the_real_stages() -> None:
-    from pipeline.config import check_param_names
+    from pipeline.config import build_params, check_param_names
     from pipeline.registry import load_stages
 
     stages = load_stages()
@@ -77,7 +77,7 @@ def test_shipped_sweep_workflows_expand_against_the_real_stages() -> None:
         for p in sweep_points(wf.sweep):
             for stage, values in p.overrides.items():
                 check_param_names(stage, values, stages, name)
-                stages[stage].Params.model_validate({**wf.params.get(stage, {}), **values})
+                build_params(stages[stage], [(name, wf.params.get(stage, {})), ("sweep point", values)])
 
 
 # -- the runner on a toy registry ---------------------------------------------------------------------------------

@@ -18,6 +18,7 @@ import numpy.typing as npt
 from core import hilbert_map as hm
 from stages.evaluate import baselines
 from stages.evaluate.occupancy import LabelledSamples, grid_counts_fit, grid_counts_predict, roc_auc
+from stages.evaluate.params import BaselineParams
 
 F64 = npt.NDArray[np.float64]
 METHODS = ("hilbert_gp", "rff", "sparse", "nystrom", "grid")
@@ -36,17 +37,6 @@ class GPConfig:
 
     def basis(self, M: int) -> hm.HilbertBasis:
         return hm.make_basis(self.half_widths, self.centre, M, self.basis_kind)
-
-
-@dataclass(frozen=True)
-class BaselineConfig:
-    """Settings of the SGD-trained Hilbert-map baselines."""
-
-    lengthscale_m: float
-    alpha: float = 1e-4
-    epochs: int = 1
-    sparse_support_factor: float = 2.0
-    grid_resolution: float = 0.5
 
 
 @dataclass
@@ -116,7 +106,7 @@ def method_rng(seed: int, method: str, dim: int) -> np.random.Generator:
 
 def fit_baseline(
     kind: baselines.BaselineKind, dim: int, train: LabelledSamples, lo: F64, hi: F64,
-    cfg: BaselineConfig, rng: np.random.Generator,
+    cfg: BaselineParams, rng: np.random.Generator,
 ) -> tuple[baselines.FeatureMap, baselines.LogisticModel]:
     """Build a ``dim``-component feature map and train its logistic weights scan by scan."""
     if kind == "rff":
@@ -141,7 +131,7 @@ class AucRow:
 
 
 def auc_suite(
-    train: LabelledSamples, test: LabelledSamples, gp: GPConfig, base: BaselineConfig,
+    train: LabelledSamples, test: LabelledSamples, gp: GPConfig, base: BaselineParams,
     counts: Sequence[int], methods: Sequence[str], seed: int,
     on_fit: Callable[[str, int], None] | None = None,
 ) -> list[AucRow]:

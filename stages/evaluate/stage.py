@@ -25,17 +25,17 @@ import json
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
-from pydantic import Field
 
 from core import hilbert_map as hm
 from core.errors import UserError
 from core.stage import Stage, StageContext, StageParams, StageReport, blas_threads, flatten_params, parquet_rows
 from schemas import read_artifact, write_artifact
 from stages.evaluate import figures, tables
+from stages.evaluate.params import EvaluateParams
 from stages.evaluate.trajectory import (
     anchored_errors,
     evaluate_trajectory,
@@ -48,69 +48,6 @@ if TYPE_CHECKING:
     from pipeline.sequences import SequenceInfo
 
 F64 = npt.NDArray[np.float64]
-Section = Literal["trajectory", "mapping", "uncertainty", "rmap"]
-MappingMethod = Literal["hilbert_gp", "rff", "sparse", "nystrom", "grid"]
-
-
-class EvaluateParams(StageParams):
-    """Parameters of the `evaluate` stage."""
-
-    sections: list[Section] = Field(["trajectory", "mapping", "uncertainty", "rmap"],
-                                    description="what to evaluate: trajectory, mapping, uncertainty, rmap")
-    seed: int = Field(0, description="seed of every random draw (split, free samples, random features)")
-    # -- trajectories
-    n_align: int = Field(100, ge=2, le=10_000_000, description="the paper's protocol: SE(2) alignment on the first N "
-                         "ground-truth-matched frames (the whole-trajectory alignment is reported beside it)")
-    max_gt_gap_s: float = Field(0.5, gt=0, description="an estimate is matched only when the ground-truth "
-                                "samples around its time are at most this far apart (s)")
-    # -- mapping (AUC protocol)
-    auc_points: Literal["filtered", "raw"] = Field("filtered", description="radar points of the AUC protocol: "
-                                                   "the filter stage's output or the raw detections")
-    test_fraction: float = Field(0.2, gt=0, lt=1, description="share of scans held out for the AUC")
-    split_block_scans: int = Field(10, ge=1, le=1_000_000,
-                                   description="scans are held out in contiguous blocks of this size "
-                                   "(blocks drawn at random with the seed)")
-    free_per_metre: float = Field(0.5, gt=0, description="free samples per metre of beam: max(1, floor(d * "
-                                  "this)) per beam, uniform in [0, d - 0.1] (Hilbert maps: 0.5)")
-    max_range: float | None = Field(None, gt=0, description="drop beams longer than this (m); default: the "
-                                    "slam stage's max_range (5 m, Table II)")
-    z_min: float | None = Field(None, description="keep radar points with base-frame z >= z_min (m); default: "
-                                "the slam stage's gate if it has one")
-    z_max: float | None = Field(None, description="keep radar points with base-frame z <= z_max (m); default: "
-                                "the slam stage's gate if it has one")
-    methods: list[MappingMethod] = Field(["hilbert_gp", "rff", "sparse", "nystrom", "grid"],
-                                         description="mapping methods of the AUC comparison")
-    feature_counts: list[int] = Field([64, 144, 256, 400], description="numbers of map features (Fig. 6); "
-                                      "perfect squares for the tensor Hilbert basis")
-    headline: bool = Field(True, description="also score every method at the slam stage's feature count M "
-                           "(the rows without @) and write gt_map_grid.parquet / gt_map.png")
-    gp_lengthscale: float | None = Field(None, gt=0, description="HILBERT-GP length scale in the slam stage's "
-                                         "units (default: the slam posterior's)")
-    gp_signal_variance: float | None = Field(None, gt=0, description="HILBERT-GP signal variance (default: "
-                                             "the slam posterior's)")
-    gp_noise_variance: float | None = Field(None, gt=0, description="HILBERT-GP noise variance (default: "
-                                            "the slam posterior's)")
-    domain_padding: float | None = Field(None, ge=0, description="Hilbert domain = ground-truth envelope "
-                                         "padded by this (m); default: the slam stage's padding")
-    baseline_lengthscale: float = Field(1.0, gt=0, description="SE length scale of the RFF and Nystrom "
-                                        "baselines and the minimum sparse-kernel support (m)")
-    sgd_alpha: float = Field(1e-4, gt=0, description="L2 penalty of the SGD baselines (also sets the "
-                             "learning rate 1 / (alpha (t0 + t)))")
-    sgd_epochs: int = Field(1, ge=1, le=10_000, description="passes over the training scans for the SGD baselines")
-    sparse_support_factor: float = Field(2.0, gt=0, description="sparse-kernel support in inducing-grid "
-                                         "spacings")
-    grid_resolution: float = Field(0.5, ge=0.01, description="cell size of the count-grid reference (m)")
-    grid_spacing: float = Field(0.25, ge=0.01, description="query spacing of the maps written and plotted (m)")
-    uncertainty_every: int = Field(10, ge=1, le=1_000_000, description="record the uncertainty quartiles every N scans")
-    query_spacings: list[float] = Field([10.0, 2.0, 1.0, 0.25], description="grid spacings (m) at which the "
-                                        "slam map posterior is queried for the resolution figure (Fig. 9)")
-    # -- RMap
-    fscore_threshold: float = Field(0.15, gt=0, description="F-score distance d (m), RMap: one voxel")
-    blas_threads: int = Field(1, ge=0, le=256, description="BLAS threads while evaluating (0: leave the library's "
-                              "default); the matrices are small, and a multi-threaded BLAS on a busy machine "
-                              "spins more than it computes")
-
-
 #: sections that read the log's ground truth (the map metrics compare maps only)
 GT_SECTIONS = frozenset({"trajectory", "mapping", "uncertainty"})
 
@@ -132,7 +69,7 @@ class EvaluateStage(Stage):
         s = set(params.sections)
         need = ["ingest"] if s & GT_SECTIONS else []
         if "mapping" in s or "uncertainty" in s:
-            need += ["filter"] if params.auc_points == "filtered" else []
+            need += ["filter"] if params.mapping.auc_points == "filtered" else []
         if "trajectory" in s:
             need += ["odometry"]
         if s & {"trajectory", "mapping", "uncertainty"}:
@@ -246,9 +183,9 @@ class Evaluation:
             xy = np.stack([t["x"].to_numpy(), t["y"].to_numpy()], 1)
             try:
                 err = evaluate_trajectory(est_t, xy, t["yaw"].to_numpy(), gt["t_ns"], gt_xy, gt["yaw"],
-                                          p.n_align, int(p.max_gt_gap_s * 1e9))
+                                          p.trajectory.n_align, int(p.trajectory.max_gt_gap_s * 1e9))
                 whole = evaluate_trajectory_whole(est_t, xy, t["yaw"].to_numpy(), gt["t_ns"], gt_xy, gt["yaw"],
-                                                  int(p.max_gt_gap_s * 1e9))
+                                                  int(p.trajectory.max_gt_gap_s * 1e9))
             except ValueError as exc:
                 ctx.warn(f"{path.name}: {exc}; skipped")
                 continue
@@ -261,7 +198,7 @@ class Evaluation:
             if anchored:  # every estimate starts at the ground-truth pose: its errors without alignment (the maps
                 # built along it live in that frame, so these are the errors the radar-only maps inherit)
                 pos_a, yaw_a = anchored_errors(est_t, xy, t["yaw"].to_numpy(), gt["t_ns"], gt_xy, gt["yaw"],
-                                               int(p.max_gt_gap_s * 1e9))
+                                               int(p.trajectory.max_gt_gap_s * 1e9))
                 self.add("trajectory", method, "ate_pos_rmse_anchored_m", pos_a)
                 self.add("trajectory", method, "ate_yaw_rmse_anchored_deg", yaw_a)
             final = float(np.linalg.norm(err.xy_aligned[-1] - err.xy_gt[-1]))
@@ -292,30 +229,31 @@ class Evaluation:
         rng = np.random.default_rng(p.seed)
         slam_params = self._slam_params(ctx)
         post = self._posterior_meta(ctx)
-        max_range = p.max_range or float(slam_params.get("beams.max_range") or SLAM_FALLBACKS["beams.max_range"])
-        z_min = p.z_min if p.z_min is not None else slam_params.get("beams.z_min")
-        z_max = p.z_max if p.z_max is not None else slam_params.get("beams.z_max")
-        padding = p.domain_padding if p.domain_padding is not None else hm.DOMAIN_PADDING
+        mp_ = p.mapping
+        max_range = mp_.max_range or float(slam_params.get("beams.max_range") or SLAM_FALLBACKS["beams.max_range"])
+        z_min = mp_.z_min if mp_.z_min is not None else slam_params.get("beams.z_min")
+        z_max = mp_.z_max if mp_.z_max is not None else slam_params.get("beams.z_max")
+        padding = mp_.domain_padding if mp_.domain_padding is not None else hm.DOMAIN_PADDING
 
-        stage, fname, schema = ("filter", "radar_filtered.parquet", "radar_filtered") if p.auc_points == "filtered" \
-            else ("ingest", "radar.parquet", "radar")
+        stage, fname, schema = (("filter", "radar_filtered.parquet", "radar_filtered") if mp_.auc_points == "filtered"
+                                else ("ingest", "radar.parquet", "radar"))
         radar_path = ctx.input(stage, fname)
         radar = read_artifact(radar_path, schema, columns=["scan", "t_ns", "x", "y", "z"])
         calib = self._calibration(ctx)
-        interp = gt_interpolator(gt, int(p.max_gt_gap_s * 1e9))
+        interp = gt_interpolator(gt, int(p.trajectory.max_gt_gap_s * 1e9))
         beams = radar_beams_world(radar, calib, interp, max_range, z_min, z_max)
         ctx.stats["auc_beams"] = beams.stats
         if len(beams.scan) < 10:
             raise UserError(f"{radar_path}: only {len(beams.scan)} radar points fall within ground truth and "
                             f"max_range {max_range} m; the AUC protocol needs radar scans with ground-truth poses")
-        samples = hilbert_maps_samples(beams.origin, beams.end, beams.scan, rng, p.free_per_metre)
+        samples = hilbert_maps_samples(beams.origin, beams.end, beams.scan, rng, p.mapping.free_per_metre)
         # the Hilbert domain: ground-truth envelope plus the slam stage's padding
         env = np.stack([gt["x"], gt["y"]], 1)[interp.span_mask(gt["t_ns"])]
         lo, hi = env.min(0) - padding, env.max(0) + padding
         half, centre = (hi - lo) / 2.0, (hi + lo) / 2.0
         inside = np.all(np.abs(samples.points - centre) < half, axis=1)
         samples = samples.select(inside)
-        test_mask = split_scans_by_block(samples.scan, p.test_fraction, p.split_block_scans, rng)
+        test_mask = split_scans_by_block(samples.scan, p.mapping.test_fraction, p.mapping.split_block_scans, rng)
         train, test = samples.select(~test_mask), samples.select(test_mask)
         n_scans = len(np.unique(samples.scan))
         ctx.stats["auc_samples"] = {"train": len(train), "test": len(test), "outside_domain": int((~inside).sum()),
@@ -323,9 +261,9 @@ class Evaluation:
                                     "occupied_share_test": float(np.mean(test.labels > 0)) if len(test) else None}
         gp_cfg = mp.GPConfig(
             (float(half[0]), float(half[1])), (float(centre[0]), float(centre[1])),
-            lengthscale_m=(p.gp_lengthscale or post["lengthscale"]) * post["length_unit_m"],
-            signal_variance=p.gp_signal_variance or post["signal_variance"],
-            noise_variance=p.gp_noise_variance or post["noise_variance"],
+            lengthscale_m=p.gp.lengthscale_m or post["lengthscale"] * post["length_unit_m"],
+            signal_variance=p.gp.signal_variance or post["signal_variance"],
+            noise_variance=p.gp.noise_variance or post["noise_variance"],
             basis_kind=post["basis_kind"])
         for k, v in (("lengthscale_m", gp_cfg.lengthscale_m), ("signal_variance", gp_cfg.signal_variance),
                      ("noise_variance", gp_cfg.noise_variance)):
@@ -334,25 +272,28 @@ class Evaluation:
                            "lengthscale_m": gp_cfg.lengthscale_m, "signal_variance": gp_cfg.signal_variance,
                            "noise_variance": gp_cfg.noise_variance, "M": post["M"], "basis": gp_cfg.basis_kind}
         self.note("mapping", f"{len(train)} training and {len(test)} held-out samples from {n_scans} scans "
-                  f"({p.test_fraction:.0%} of the scans held out in blocks of {p.split_block_scans}, seed {p.seed}); "
-                  f"ground-truth poses; HILBERT-GP l = {gp_cfg.lengthscale_m:g} m, sf2 = {gp_cfg.signal_variance:g}, "
+                  f"({p.mapping.test_fraction:.0%} of the scans held out in blocks of "
+                  f"{p.mapping.split_block_scans}, seed {p.seed}); "
+                  f"ground-truth poses; HILBERT-GP l = {gp_cfg.lengthscale_m:g} m, "
+                  f"sf2 = {gp_cfg.signal_variance:g}, "
                   f"sn2 = {gp_cfg.noise_variance:g} on {2 * half[0]:.1f} m x {2 * half[1]:.1f} m; baselines "
-                  f"l = {p.baseline_lengthscale:g} m, SGD alpha = {p.sgd_alpha:g}, {p.sgd_epochs} epoch(s)")
+                  f"l = {p.baselines.lengthscale_m:g} m, SGD alpha = {p.baselines.alpha:g}, "
+                  f"{p.baselines.epochs} epoch(s)")
 
         t_scan = {int(s): int(t) for s, t in zip(beams.scan, beams.t_ns, strict=True)}
         M = int(post["M"])
         fit = None
-        if p.headline or "uncertainty" in p.sections:
+        if p.mapping.headline or "uncertainty" in p.sections:
             # the headline map: HILBERT-GP at the slam stage's M, tracking the uncertainty over the mapped area
             track = None
             if "uncertainty" in p.sections:
                 pos = np.stack([gt["x"], gt["y"]], 1)[interp.span_mask(gt["t_ns"])]
-                track = mp.observed_cells(lo, hi, max(p.grid_spacing, 0.5), pos, max_range)
+                track = mp.observed_cells(lo, hi, max(p.mapping.grid_spacing, 0.5), pos, max_range)
             with ctx.progress(len(np.unique(train.scan)), f"HILBERT-GP M={M} (Kalman, ground-truth poses)") as adv:
-                fit = mp.fit_hilbert_gp(train, gp_cfg, M, track, p.uncertainty_every, on_scan=adv)
+                fit = mp.fit_hilbert_gp(train, gp_cfg, M, track, p.uncertainty.every, on_scan=adv)
         if "mapping" in p.sections:
-            self._auc(ctx, mp, train, test, gp_cfg, fit if p.headline else None, M)
-            if fit is not None and p.headline:
+            self._auc(ctx, mp, train, test, gp_cfg, fit if p.mapping.headline else None, M)
+            if fit is not None and p.mapping.headline:
                 self._gt_map(ctx, fit, gp_cfg, lo, hi, gt, interp, train)
         if "uncertainty" in p.sections and fit is not None:
             self._uncertainty(ctx, fit, t_scan, gt)
@@ -362,14 +303,14 @@ class Evaluation:
     def _query_resolutions(self, ctx: StageContext) -> None:
         """Fig. 9: the slam stage's map posterior (one set of weights) queried at several grid spacings."""
         d = ctx.input_dirs.get("slam")
-        if d is None or not (d / "map_posterior.parquet").exists() or not ctx.params.query_spacings:
+        if d is None or not (d / "map_posterior.parquet").exists() or not ctx.params.uncertainty.query_spacings:
             return
         from core.map_field import field_from_posterior, grid_axes
 
         field = field_from_posterior(read_artifact(d / "map_posterior.parquet", "map_posterior"))
         basis, theta, cov, M = field.basis, field.theta, field.cov, field.basis.M
         panels: list[tuple[float, F64, F64, F64]] = []
-        for spacing in sorted(ctx.params.query_spacings, reverse=True):
+        for spacing in sorted(ctx.params.uncertainty.query_spacings, reverse=True):
             gx, gy = grid_axes(field.lo, field.hi, spacing)
             if len(gx) == 0 or len(gy) == 0:
                 continue
@@ -388,13 +329,12 @@ class Evaluation:
         from stages.evaluate.occupancy import roc_auc
 
         p: EvaluateParams = ctx.params
-        base = mp.BaselineConfig(p.baseline_lengthscale, p.sgd_alpha, p.sgd_epochs, p.sparse_support_factor,
-                                 p.grid_resolution)
-        counts = sorted(set(p.feature_counts) | ({M} if fit is not None else set()))
-        feature_methods = [m for m in p.methods if m != "grid"]
+        base = p.baselines
+        counts = sorted(set(p.mapping.feature_counts) | ({M} if fit is not None else set()))
+        feature_methods = [m for m in p.mapping.methods if m != "grid"]
         rows = []
         with ctx.progress(len(feature_methods) * len(counts), "AUC: methods x feature counts") as adv:
-            if "hilbert_gp" in p.methods:
+            if "hilbert_gp" in p.mapping.methods:
                 hg_counts = list(counts)
                 if fit is not None:
                     t0 = time.perf_counter()
@@ -405,7 +345,7 @@ class Evaluation:
                 if hg_counts:
                     rows += mp.auc_suite(train, test, gp_cfg, base, hg_counts, ["hilbert_gp"], p.seed,
                                          on_fit=lambda *_: adv(1))
-            rest = [m for m in p.methods if m != "hilbert_gp"]
+            rest = [m for m in p.mapping.methods if m != "hilbert_gp"]
             if rest and (counts or "grid" in rest):
                 rows += mp.auc_suite(train, test, gp_cfg, base, counts, rest, p.seed, on_fit=lambda *_: adv(1))
         fig_rows = []
@@ -416,7 +356,7 @@ class Evaluation:
                 self.add("mapping", "grid", "fit_seconds", r.seconds)
                 ref["grid"] = r.auc
                 continue
-            if r.features in p.feature_counts:
+            if r.features in p.mapping.feature_counts:
                 self.add("mapping", f"{r.method}@{r.features}", "auc", r.auc, r.features)
                 self.add("mapping", f"{r.method}@{r.features}", "fit_seconds", r.seconds, r.features)
                 fig_rows.append((r.method, r.features, r.auc, 0.0))
@@ -431,8 +371,8 @@ class Evaluation:
     def _gt_map(self, ctx: StageContext, fit: Any, gp_cfg: Any, lo: F64, hi: F64, gt: dict[str, Any],
                 interp: Any, train: Any) -> None:
         p: EvaluateParams = ctx.params
-        gx = np.arange(lo[0] + p.grid_spacing / 2, hi[0], p.grid_spacing)
-        gy = np.arange(lo[1] + p.grid_spacing / 2, hi[1], p.grid_spacing)
+        gx = np.arange(lo[0] + p.mapping.grid_spacing / 2, hi[0], p.mapping.grid_spacing)
+        gy = np.arange(lo[1] + p.mapping.grid_spacing / 2, hi[1], p.mapping.grid_spacing)
         pts = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
         mean, var, occ = fit.query(pts)
 
@@ -473,7 +413,7 @@ class Evaluation:
             self.figures["uncertainty"] = "uncertainty.png"
             self.note("uncertainty", "normalised uncertainty u(p) / u_prior(p) (eq. 33 over the prior) on "
                       "the cells within max_range of the ground-truth path; quartiles after each "
-                      f"{ctx.params.uncertainty_every}th training scan" +
+                      f"{ctx.params.uncertainty.every}th training scan" +
                       ("; the slam stage's per-scan statistics are drawn as well" if online is not None else
                        "; the slam stage wrote no map_stats.parquet, so only the ground-truth-pose map is shown"))
 

@@ -21,27 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from stages.filter.params import EgoVelocityParams
+
 F64 = npt.NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class EgoVelocityConfig:
-    """REVE's parameters (defaults from its public configuration)."""
-
-    inlier_threshold: float = 0.15
-    outlier_probability: float = 0.4
-    success_probability: float = 0.9999
-    max_iterations: int = 200
-    min_points: int = 5
-    zero_velocity_threshold: float = 0.05
-    allowed_outlier_fraction: float = 0.3
-    sigma_offset: float = 0.05
-    max_condition: float = 1000.0
-    max_sigma_xy: float = 0.2
-    max_sigma_z: float = 0.2
-    doppler_sigma_floor: float = 0.05
-    max_vz: float = 1.0
-    refine: bool = True
 
 
 @dataclass
@@ -56,7 +38,7 @@ class EgoVelocity:
     dims: int = 3
 
 
-def ransac_iterations(cfg: EgoVelocityConfig, sample_size: int = 3) -> int:
+def ransac_iterations(cfg: EgoVelocityParams, sample_size: int = 3) -> int:
     """Number of RANSAC hypotheses for the configured outlier and success probabilities."""
     good = (1.0 - cfg.outlier_probability) ** sample_size
     if good >= 1.0:
@@ -71,7 +53,7 @@ def unit_directions(xyz: F64) -> tuple[F64, F64]:
     return xyz / np.where(rng > 0, rng, 1.0)[:, None], rng
 
 
-def _lsq(dirs: F64, doppler: F64, dims: int, cfg: EgoVelocityConfig) -> tuple[F64, F64] | None:
+def _lsq(dirs: F64, doppler: F64, dims: int, cfg: EgoVelocityParams) -> tuple[F64, F64] | None:
     """Least squares on the inliers; None when ill-conditioned or less precise than ``max_sigma_*``."""
     A = -dirs[:, :dims]
     n = len(doppler)
@@ -99,7 +81,7 @@ def _lsq(dirs: F64, doppler: F64, dims: int, cfg: EgoVelocityConfig) -> tuple[F6
     return v3, cov3
 
 
-def _ransac(dirs: F64, doppler: F64, dims: int, cfg: EgoVelocityConfig, rng: np.random.Generator
+def _ransac(dirs: F64, doppler: F64, dims: int, cfg: EgoVelocityParams, rng: np.random.Generator
             ) -> npt.NDArray[np.bool_]:
     """Inlier mask of the best hypothesis from minimal ``dims``-point samples (batched solves)."""
     n = len(doppler)
@@ -121,7 +103,7 @@ def _ransac(dirs: F64, doppler: F64, dims: int, cfg: EgoVelocityConfig, rng: np.
     return np.asarray(inl[best])
 
 
-def estimate(dirs: F64, doppler: F64, cfg: EgoVelocityConfig, rng: np.random.Generator,
+def estimate(dirs: F64, doppler: F64, cfg: EgoVelocityParams, rng: np.random.Generator,
              prior: F64 | None = None) -> EgoVelocity:
     """Ego-velocity of the sensor from unit directions (N, 3) and Doppler velocities (N,).
 
@@ -146,7 +128,7 @@ def estimate(dirs: F64, doppler: F64, cfg: EgoVelocityConfig, rng: np.random.Gen
     return est
 
 
-def _estimate(dirs: F64, doppler: F64, cfg: EgoVelocityConfig, rng: np.random.Generator) -> EgoVelocity:
+def _estimate(dirs: F64, doppler: F64, cfg: EgoVelocityParams, rng: np.random.Generator) -> EgoVelocity:
     n = len(doppler)
     invalid = EgoVelocity(np.full(3, np.nan), np.full((3, 3), np.nan), np.zeros(n, bool), False)
     if n < max(cfg.min_points, 3):
@@ -182,7 +164,7 @@ def _estimate(dirs: F64, doppler: F64, cfg: EgoVelocityConfig, rng: np.random.Ge
     return planar
 
 
-def _solve(dirs: F64, doppler: F64, dims: int, cfg: EgoVelocityConfig, rng: np.random.Generator
+def _solve(dirs: F64, doppler: F64, dims: int, cfg: EgoVelocityParams, rng: np.random.Generator
            ) -> EgoVelocity | None:
     inl = _ransac(dirs, doppler, dims, cfg, rng)
     if inl.sum() < max(cfg.min_points, dims + 1):
@@ -191,12 +173,11 @@ def _solve(dirs: F64, doppler: F64, dims: int, cfg: EgoVelocityConfig, rng: np.r
     if sol is None:
         return None
     v, cov = sol
-    if cfg.refine:  # re-select inliers with the least-squares solution, solve once more
-        inl2 = np.abs(doppler + dirs @ v) < cfg.inlier_threshold
-        if inl2.sum() >= max(cfg.min_points, dims + 1):
-            sol2 = _lsq(dirs[inl2], doppler[inl2], dims, cfg)
-            if sol2 is not None:
-                (v, cov), inl = sol2, inl2
+    inl2 = np.abs(doppler + dirs @ v) < cfg.inlier_threshold  # re-select inliers with the LSQ solution, solve again
+    if inl2.sum() >= max(cfg.min_points, dims + 1):
+        sol2 = _lsq(dirs[inl2], doppler[inl2], dims, cfg)
+        if sol2 is not None:
+            (v, cov), inl = sol2, inl2
     return EgoVelocity(v, cov, inl, True, dims)
 
 

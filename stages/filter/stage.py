@@ -16,75 +16,17 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
-from pydantic import Field
 
 from core.geometry import interpolate_poses, matrices_to_poses
-from core.stage import Stage, StageContext, StageParams
+from core.stage import Stage, StageContext
 from schemas.io import read_artifact, write_artifact
 from stages.filter import ego_velocity as ev
 from stages.filter.evaluation import label_fractions, radar_velocity_from_groundtruth, velocity_errors
+from stages.filter.params import FilterParams
 from stages.filter.tracking import frame_motions, interval_rotations, track_masks
 from stages.filter.uncertainty import max_sigma, point_covariances
 
 DEG = np.pi / 180.0
-
-
-class FilterParams(StageParams):
-    """Parameters of the `filter` stage (REVE defaults for the ego-velocity estimator)."""
-
-    seed: int = Field(0, description="seed of the RANSAC sampling")
-    min_range_m: float = Field(0.25, ge=0, description="points closer than this are dropped (REVE min_dist)")
-    max_range_m: float = Field(100.0, gt=0, description="points farther than this are dropped (REVE max_dist)")
-    min_intensity: float = Field(5.0, description="intensity gate, in the radar's intensity unit (REVE min_db, dB)")
-    estimator_max_azimuth_deg: float = Field(56.5, gt=0, le=180,
-                                             description="|azimuth| limit of points used for the ego-velocity (REVE)")
-    estimator_max_elevation_deg: float = Field(
-        45.0, gt=0, le=90, description="|elevation| limit of points used for the ego-velocity (ColoRadar tools' "
-                                       "+-45 deg field of view; REVE's own sensor used 22.5)")
-    inlier_threshold_mps: float = Field(0.15, gt=0, description="RANSAC Doppler inlier threshold (REVE)")
-    outlier_probability: float = Field(0.4, gt=0, lt=1, description="assumed outlier fraction for the RANSAC count")
-    success_probability: float = Field(0.9999, gt=0, lt=1, description="RANSAC success probability")
-    max_iterations: int = Field(200, ge=1, le=100_000, description="cap on RANSAC hypotheses")
-    min_points: int = Field(5, ge=3, le=100_000, description="fewest usable points for an ego-velocity estimate")
-    zero_velocity_threshold_mps: float = Field(0.05, ge=0, description="zero-velocity test threshold (REVE)")
-    allowed_outlier_fraction: float = Field(0.3, ge=0, lt=1,
-                                            description="outlier share tolerated by the zero-velocity test (REVE)")
-    sigma_offset_mps: float = Field(0.05, ge=0, description="added to the LSQ velocity std (REVE sigma_offset)")
-    max_condition: float = Field(1000.0, gt=1, description="LSQ condition bound; above it v_z is fixed to 0")
-    max_sigma_xy_mps: float = Field(0.2, gt=0, description="largest LSQ std of v_x, v_y for a valid estimate (REVE)")
-    max_sigma_z_mps: float = Field(0.2, gt=0, description="largest LSQ std of v_z; above it v_z is fixed to 0")
-    max_vz_mps: float = Field(1.0, gt=0, description="largest plausible |v_z| (radar z up); 3D solutions beyond it "
-                                                     "fall back to the planar model")
-    doppler_sigma_floor_mps: float = Field(0.05, ge=0,
-                                           description="floor of the LSQ residual std (Doppler resolution ~0.04 m/s)")
-    temporal_prior: bool = Field(True, description="offer the previous scan's velocity as a RANSAC hypothesis; "
-                                                   "it wins ties in the inlier count")
-    static_threshold_mps: float = Field(0.15, gt=0,
-                                        description="keep points with |d + r.v| below this (static world)")
-    range_sigma_m: float = Field(0.0625, ge=0, description="modelled range noise std (half a 0.125 m range bin)")
-    azimuth_sigma_deg: float = Field(5.5, ge=0, description="modelled azimuth noise std (half the ~11 deg resolution)")
-    elevation_sigma_deg: float = Field(22.5, ge=0,
-                                       description="modelled elevation noise std (half the ~45 deg resolution)")
-    max_point_sigma_m: float = Field(1.0, gt=0, description="point-uncertainty gate: largest position std, m")
-    uncertainty_horizontal: bool = Field(True, description="gate on the horizontal (base xy) block of the covariance")
-    track_frames: int = Field(2, ge=0, le=100,
-                              description="previous scans a point must be matched in (0 = no tracking)")
-    track_gate_m: float = Field(0.3, ge=0, description="match radius for tracking, m")
-    track_gate_sigma_scale: float = Field(1.0, ge=0, description="adds this many modelled point stds to the gate")
-    track_use_z: bool = Field(False, description="match in 3D (default: horizontal x, y of the radar frame)")
-    max_scan_gap_s: float = Field(0.5, gt=0, description="a larger gap between scans breaks every track")
-    gt_velocity_half_window_s: float = Field(0.05, gt=0,
-                                             description="central difference half-window for ground-truth velocity")
-    rerun_every: int = Field(1, ge=1, le=1_000_000, description="log every n-th scan's kept/rejected points to Rerun")
-
-
-def _config(p: FilterParams) -> ev.EgoVelocityConfig:
-    return ev.EgoVelocityConfig(
-        inlier_threshold=p.inlier_threshold_mps, outlier_probability=p.outlier_probability,
-        success_probability=p.success_probability, max_iterations=p.max_iterations, min_points=p.min_points,
-        zero_velocity_threshold=p.zero_velocity_threshold_mps, allowed_outlier_fraction=p.allowed_outlier_fraction,
-        sigma_offset=p.sigma_offset_mps, max_condition=p.max_condition, max_sigma_xy=p.max_sigma_xy_mps,
-        max_sigma_z=p.max_sigma_z_mps, doppler_sigma_floor=p.doppler_sigma_floor_mps, max_vz=p.max_vz_mps)
 
 
 def filter_scans(xyz: npt.NDArray[np.float64], intensity: npt.NDArray[np.float64], doppler: npt.NDArray[np.float64],
@@ -97,45 +39,47 @@ def filter_scans(xyz: npt.NDArray[np.float64], intensity: npt.NDArray[np.float64
     """
     S = len(scan_t)
     n = len(doppler)
-    cfg = _config(p)
+    cfg = p.ego_velocity
     rng = np.random.default_rng(p.seed)
     dirs, rng_m = ev.unit_directions(xyz)
     az = np.arctan2(xyz[:, 1], xyz[:, 0])
     el = np.arcsin(np.clip(xyz[:, 2] / np.where(rng_m > 0, rng_m, 1.0), -1, 1))
-    in_range = (rng_m >= p.min_range_m) & (rng_m <= p.max_range_m)
-    bright = intensity >= p.min_intensity
-    estimable = in_range & bright & (np.abs(az) <= p.estimator_max_azimuth_deg * DEG) & \
-        (np.abs(el) <= p.estimator_max_elevation_deg * DEG)
+    in_range = (rng_m >= p.points.min_range_m) & (rng_m <= p.points.max_range_m)
+    bright = intensity >= p.points.min_intensity
+    estimable = in_range & bright & (np.abs(az) <= p.points.max_azimuth_deg * DEG) & \
+        (np.abs(el) <= p.points.max_elevation_deg * DEG)
     vel = np.full((S, 3), np.nan)
     cov = np.full((S, 3, 3), np.nan)
     n_inl = np.zeros(S, np.int32)
     dims = np.zeros(S, np.int8)
     valid = np.zeros(S, bool)
     R_rel = interval_rotations(imu_t, gyro_radar, scan_t)
-    gap_ok = np.r_[True, np.diff(scan_t) * 1e-9 <= p.max_scan_gap_s]
+    gap_ok = np.r_[True, np.diff(scan_t) * 1e-9 <= p.tracking.max_scan_gap_s]
     for s in range(S):
         a, b = starts[s], starts[s + 1]
         sel = np.flatnonzero(estimable[a:b]) + a
         prior = None
-        if p.temporal_prior and s > 0 and valid[s - 1] and gap_ok[s]:
+        if p.ego_velocity.temporal_prior and s > 0 and valid[s - 1] and gap_ok[s]:
             prior = R_rel[s].T @ vel[s - 1]  # previous velocity in this scan's frame
         est = ev.estimate(dirs[sel], doppler[sel], cfg, rng, prior)
         vel[s], cov[s], valid[s], dims[s] = est.v, est.cov, est.valid, est.dims
         n_inl[s] = int(est.inliers.sum())
     scan_of = np.repeat(np.arange(S), np.diff(starts))
     v_pt = vel[scan_of] if n else np.zeros((0, 3))
-    static = valid[scan_of] & (np.abs(doppler + (dirs * np.nan_to_num(v_pt)).sum(axis=1)) < p.static_threshold_mps)
-    covs = point_covariances(xyz, p.range_sigma_m, p.azimuth_sigma_deg * DEG, p.elevation_sigma_deg * DEG)
-    sig = max_sigma(covs, base_from_radar[:3, :3], horizontal=p.uncertainty_horizontal)
-    certain = sig <= p.max_point_sigma_m
+    residual = np.abs(doppler + (dirs * np.nan_to_num(v_pt)).sum(axis=1))
+    static = valid[scan_of] & (residual < p.points.static_threshold_mps)
+    u = p.uncertainty
+    covs = point_covariances(xyz, u.range_sigma_m, u.azimuth_sigma_deg * DEG, u.elevation_sigma_deg * DEG)
+    sig = max_sigma(covs, base_from_radar[:3, :3], horizontal=p.uncertainty.horizontal)
+    certain = sig <= p.uncertainty.max_sigma_m
     candidate = in_range & static & bright & certain
-    if p.track_frames > 0:
+    if p.tracking.frames > 0:
         motions = frame_motions(R_rel, np.nan_to_num(vel), scan_t)
         usable = valid & np.r_[True, valid[:-1]] & gap_ok
         pts = [xyz[starts[s]:starts[s + 1]][candidate[starts[s]:starts[s + 1]]] for s in range(S)]
-        gates = [p.track_gate_m + p.track_gate_sigma_scale * sig[starts[s]:starts[s + 1]][
+        gates = [p.tracking.gate_m + p.tracking.gate_sigma_scale * sig[starts[s]:starts[s + 1]][
             candidate[starts[s]:starts[s + 1]]] for s in range(S)]
-        masks = track_masks(pts, motions, p.track_frames, gates, use_z=p.track_use_z, usable=usable)
+        masks = track_masks(pts, motions, p.tracking.frames, gates, use_z=p.tracking.use_z, usable=usable)
         tracked = np.zeros(n, bool)
         cand_idx = np.flatnonzero(candidate)
         tracked[cand_idx] = np.concatenate(masks) if masks else np.zeros(0, bool)
@@ -165,7 +109,7 @@ class FilterStage(Stage):
         gyro = np.stack([imu[c].to_numpy() for c in ("gx", "gy", "gz")], axis=1)
         radar_from_imu = np.linalg.inv(base_from_radar)[:3, :3] @ base_from_imu[:3, :3]
         gyro_radar = gyro @ radar_from_imu.T
-        if p.track_frames > 0 and len(imu_t) < 2:
+        if p.tracking.frames > 0 and len(imu_t) < 2:
             ctx.warn("no IMU samples: scan-to-scan rotation taken as zero for tracking")
 
         scans = radar["scan"].to_numpy()
