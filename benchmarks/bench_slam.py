@@ -108,6 +108,52 @@ def _float32_accuracy(beams: int, steps: int, form: str = "covariance") -> float
     return worst
 
 
+def _stage_real_time(quick: bool) -> list[Result]:
+    """The slam stage on the demo log: the log's duration over the stage's own seconds (its manifest), for
+    ``radar_graph`` alone (target: 5x real time) and, in full mode, the paper's ``rich_slam`` at 200 particles
+    (target: real time). The log is simulated and run to the odometry once, in a temporary store."""
+    import json
+    import os
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    import pyarrow.parquet as pq
+
+    root = Path(__file__).resolve().parents[1]
+    methods = [("radar_graph", 5.0)] + ([] if quick else [("rich_slam", 1.0)])
+    out: list[Result] = []
+    with tempfile.TemporaryDirectory(prefix="bench_slam_stage_") as tmp:
+        env = {**os.environ, "RADAR_PIPELINE_CACHE": str(Path(tmp) / "cache")}
+
+        def cli(*args: str) -> None:
+            r = subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=root, env=env, capture_output=True,
+                               text=True)
+            if r.returncode != 0:
+                raise RuntimeError(f"pipeline {' '.join(args)} failed ({r.returncode}): {r.stderr[-2000:]}")
+
+        runs = Path(tmp) / "runs"
+        if quick:
+            bag = Path(tmp) / "demo15.bag"
+            cli("simulate", "--world", "demo", "--out", str(bag), "--duration", "15", "--seed", "0")
+            src, seq = ["--source", str(bag), "--seq", "demo15"], "demo15"
+        else:
+            src, seq = ["--seq", "demo"], "demo"
+        cli("run", "odometry", *src, "--runs-dir", str(runs))
+        t_ns = pq.read_table(runs / seq / "odometry" / "odometry.parquet", columns=["t_ns"])["t_ns"].to_numpy()
+        duration = float(t_ns[-1] - t_ns[0]) * 1e-9
+        for method, target in methods:
+            cli("run", "slam", *src, "--runs-dir", str(runs), "--set", f"slam.method={method}",
+                "--set", f'slam.methods=["{method}"]', "--set", "slam.n_particles=200")
+            man = json.loads((runs / seq / "slam" / "manifest.json").read_text())
+            seconds = float(man["timings"]["seconds"])
+            out.append(Result(AREA, f"slam stage, {method} alone, on the demo log", seconds, "s",
+                              f"the log's duration ({duration:.0f} s)", duration / seconds, f">= {target:g}",
+                              "log seconds / stage seconds (x real time)"))
+    return out
+
+
 def run(quick: bool = False) -> list[Result]:
     size = 1024 if quick else 2048
     ref0 = _matmul_rate(size)
@@ -152,4 +198,4 @@ def run(quick: bool = False) -> list[Result]:
         r = _time_filter(cfg, 30, steps, M)
         out.append(Result(AREA, f"scaling Np=200 M={M} medium", r["mean"], "s/scan", "10 Hz frame (0.1 s)",
                           FRAME_S / r["mean"], "", f"{r['gflops']:.1f} GFLOP/s, {r['form']}"))
-    return out
+    return out + _stage_real_time(quick)

@@ -12,8 +12,10 @@ from stages.slam.pose_graph import (
     Edge,
     between,
     compose,
+    largest_consistent_set,
     optimise,
     optimise_graph,
+    pairwise_consistent,
     propagate,
     select_keyframes,
     transform,
@@ -88,6 +90,46 @@ def _square_graph(wrong: bool) -> tuple[np.ndarray, np.ndarray, list[Edge]]:
     if wrong:
         edges.append(Edge("loop", 2, 20, between(truth[2], compose(truth[20], np.array([2.0, 0.0, 0.5]))), lcov))
     return truth, odo, edges
+
+
+def test_the_odometry_prior_picks_the_match_it_allows_over_an_aliased_one() -> None:
+    """A corridor with doors every 4 m: a query shifted by one door period matches the reference as well as the
+    true pose does. Without a prior the search may take either; with the odometry's prior (0.3 m) around the true
+    pose, the aliased peak 4 m away loses, and the reported covariance is still the likelihood's."""
+    walls = []
+    for x0 in np.arange(-20.0, 20.0, 4.0):  # door gaps of 1 m in both walls, every 4 m
+        walls += [box_walls(x0, -1.0, x0 + 3.0, -1.0001), box_walls(x0, 1.0, x0 + 3.0, 1.0001)]
+    ref = _wall_points(np.concatenate(walls))
+    query = ref[np.abs(ref[:, 0] - 4.0) < 6.0] - np.array([4.0, 0.0])  # the pose (4, 0, 0) in its own frame
+    at_true = match(ref, query, np.array([4.0, 0.0, 0.0]), MatcherModel(), 0.3, 1.0)
+    at_alias = match(ref, query, np.array([0.0, 0.0, 0.0]), MatcherModel(), 0.3, 1.0)
+    assert abs(at_true.score - at_alias.score) < 0.05 and min(at_true.inliers, at_alias.inliers) > 0.9  # a tie
+    prior = np.diag([0.3**2, 0.3**2, np.radians(2.0) ** 2])
+    near = match(ref, query, np.array([3.8, 0.0, 0.0]), MatcherModel(), 3.0, 5.0, prior_cov=prior)
+    assert abs(near.pose[0] - 4.0) < 0.15 and near.inliers > 0.9
+    far = match(ref, query, np.array([0.2, 0.0, 0.0]), MatcherModel(), 3.0, 5.0, prior_cov=prior)
+    assert abs(far.pose[0] - 0.0) < 0.15  # the prior decides which period, not the likelihood
+    assert np.all(np.linalg.eigvalsh(near.cov) > 0)
+
+
+def test_pairwise_consistency_keeps_the_consistent_closures_and_drops_the_odd_one() -> None:
+    """PCM on a square loop driven twice: closures at the revisits agree with each other through the odometry;
+    one planted 1.5 m and 20 deg off agrees with none, and the largest consistent set leaves it out."""
+    side = [np.array([1.0, 0.0, 0.0])] * 3 + [np.array([1.0, 0.0, np.pi / 2])]
+    inc = np.array(side * 2)
+    truth = np.zeros((len(inc) + 1, 3))
+    for k, d in enumerate(inc):
+        truth[k + 1] = compose(truth[k], d)
+    cov = np.diag([1e-4, 1e-4, 1e-6])
+    odo_edges = [Edge("odometry", k, k + 1, between(truth[k], truth[k + 1]), cov, dt=1.0) for k in range(len(inc))]
+    lcov = np.diag([4e-3, 4e-3, 1e-4])
+    loops = [Edge("loop", j - 4, j, between(truth[j - 4], truth[j]), lcov) for j in range(5, 9)]
+    wrong = between(truth[2], truth[7]) + np.array([1.5, 0.0, np.radians(20.0)])
+    loops.append(Edge("loop", 2, 7, wrong, lcov))
+    consistent = pairwise_consistent(loops, odo_edges, truth, bias_sigma0=0.001)
+    assert consistent[:4, :4].all() and not consistent[4, :4].any()
+    assert largest_consistent_set(consistent) == [0, 1, 2, 3]
+    assert largest_consistent_set(np.zeros((0, 0), bool)) == []
 
 
 def test_gnc_drops_a_deliberately_wrong_loop_closure() -> None:

@@ -169,12 +169,36 @@ def travelled(keyframe_poses: F64) -> F64:
     return np.r_[0.0, np.cumsum(np.hypot(*np.diff(keyframe_poses[:, :2], axis=0).T))]
 
 
-def loop_closures(poses: F64, clouds: list[F64], model: GraphParams) -> list[Edge]:
+def chain_prior(odometry: Sequence[Edge], j: int, k: int, bias_sigma0: float) -> F64:
+    """The covariance of keyframe ``k``'s pose in keyframe ``j``'s frame (x, y in ``j``'s frame, yaw) that the
+    odometry factors between them allow: their covariances composed on SE(2) (:func:`propagate`), plus a yaw-rate
+    bias of prior std ``bias_sigma0`` acting over every factor's interval (the graph's own bias state), through
+    the chain's Jacobian with respect to that bias."""
+    chain = odometry[j:k]
+    z = np.array([e.z for e in chain])
+    dt = np.array([e.dt for e in chain])
+    total, sigma = propagate(z, np.array([e.cov for e in chain]))
+    eps = 1e-6
+    biased = z.copy()
+    biased[:, 2] += eps * dt
+    shifted, _ = propagate(biased, np.zeros((len(z), 3, 3)))
+    jac = (shifted - total) / eps
+    jac[2] = wrap_angle(shifted[2] - total[2]) / eps
+    c, s = np.cos(total[2]), np.sin(total[2])
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # k's body frame to j's frame
+    out: F64 = R @ sigma @ R.T + bias_sigma0**2 * np.outer(jac, jac)
+    return 0.5 * (out + out.T)
+
+
+def loop_closures(poses: F64, clouds: list[F64], model: GraphParams,
+                  odometry: Sequence[Edge] | None = None) -> list[Edge]:
     """Closures proposed and verified on the odometry's keyframe poses: for every keyframe (at most one closure
     per ``loop_every`` keyframes), the nearest earlier keyframe within ``loop_radius`` that lies
     ``loop_min_travel`` or more back along the path; the local cloud around the keyframe (``local_keyframes``
-    centred on it) is matched against the one around the candidate, with a wide yaw search. One whose inlier share
-    reaches ``loop_min_inliers`` is proposed; the optimiser may still reject it."""
+    centred on it) is matched against the one around the candidate, with a wide yaw search, the candidates ranked
+    by their posterior under the odometry chain's prior between the two (:func:`chain_prior`; ``odometry``: the
+    consecutive keyframes' factors, without them by the likelihood alone). One whose inlier share reaches
+    ``loop_min_inliers`` is proposed; the optimiser may still reject it."""
     s = travelled(poses)
     out: list[Edge] = []
     half = max(1, model.local_keyframes // 2)
@@ -194,12 +218,56 @@ def loop_closures(poses: F64, clouds: list[F64], model: GraphParams) -> list[Edg
         q = local_cloud(poses, clouds, k, range(max(0, k - half), min(K, k + half + 1)))
         if len(q) < MIN_LOOP_POINTS or len(ref) < MIN_LOOP_POINTS:
             continue
-        m = match(ref, q, between(poses[j], poses[k]), matcher_of(model), model.loop_radius, model.loop_search_yaw)
+        prior = None if odometry is None else chain_prior(odometry, j, k, model.bias_sigma0)
+        m = match(ref, q, between(poses[j], poses[k]), matcher_of(model), model.loop_radius, model.loop_search_yaw,
+                  prior_cov=prior)
         if m.inliers < model.loop_min_inliers:
             continue
         out.append(Edge("loop", j, k, m.pose, world_cov_to_body(m.pose, m.cov), m.inliers))
         last_closed = k
     return out
+
+
+#: PCM's test of two closures: the squared Mahalanobis norm of the cycle they close, below chi-square(3, 0.99)
+PCM_CHI2 = 11.345
+
+
+def pairwise_consistent(loops: Sequence[Edge], odometry: Sequence[Edge], poses: F64, bias_sigma0: float
+                        ) -> npt.NDArray[np.bool_]:
+    """PCM's consistency matrix (Mangelson et al., ICRA 2018): closures ``a`` (``i_a -> j_a``) and ``b`` agree when
+    the cycle ``z_a, odometry j_a -> j_b, z_b^-1, odometry i_b -> i_a`` is the identity within
+    :data:`PCM_CHI2` under the sum of the closures' covariances and the odometry chains' (:func:`chain_prior`,
+    which holds the graph's yaw-rate-bias prior). Covariances are added in the frames they are given in: a
+    first-order test, conservative where the frames differ little, as they do for closures a few metres apart."""
+    n = len(loops)
+    out = np.eye(n, dtype=bool)
+    for a in range(n):
+        for b in range(a + 1, n):
+            A, B = loops[a], loops[b]
+            cycle = compose(compose(compose(A.z, between(poses[A.j], poses[B.j])), between(B.z, np.zeros(3))),
+                            between(poses[B.i], poses[A.i]))
+            cycle[2] = wrap_angle(cycle[2])
+            S = A.cov + B.cov + np.diag([1e-4, 1e-4, 1e-6])
+            for x, y in ((A.j, B.j), (A.i, B.i)):
+                if x != y:
+                    S = S + chain_prior(odometry, min(x, y), max(x, y), bias_sigma0)
+            out[a, b] = out[b, a] = float(cycle @ np.linalg.solve(S, cycle)) < PCM_CHI2
+    return out
+
+
+def largest_consistent_set(consistent: npt.NDArray[np.bool_]) -> list[int]:
+    """The largest set of mutually consistent closures: a maximum clique of the consistency graph (networkx;
+    ties go to the set whose members come first)."""
+    import networkx as nx
+
+    n = len(consistent)
+    if n == 0:
+        return []
+    g = nx.Graph()
+    g.add_nodes_from(range(n))
+    g.add_edges_from((a, b) for a in range(n) for b in range(a + 1, n) if consistent[a, b])
+    best = max(nx.find_cliques(g), key=lambda c: (len(c), [-i for i in sorted(c)]))
+    return sorted(best)
 
 
 # -- optimiser ------------------------------------------------------------------------------------------------------
@@ -392,12 +460,15 @@ def optimise_graph(odometry: F64, cov: F64, t_s: F64, endpoints: Sequence[F64], 
     clouds = keyframe_clouds(odometry, endpoints, keyframes, matcher_of(model).resolution)
     odo = odometry_edges(odometry, cov, keyframes, np.asarray(t_s, np.float64))
     poses = odometry[keyframes]
-    loops = loop_closures(poses, clouds, model)
-    edges = [*odo, *loops]
+    loops = loop_closures(poses, clouds, model, odo)
+    clique = set(largest_consistent_set(pairwise_consistent(loops, odo, poses, model.bias_sigma0)))
+    inconsistent = [replace(e, accepted=False) for k, e in enumerate(loops) if k not in clique]
+    edges = [*odo, *(e for k, e in enumerate(loops) if k in clique)]
     opt, kcov, kept, bias = optimise(poses, edges, "gnc", model.bias_sigma0, model.bias_walk)
-    edges = [replace(e, accepted=k) for e, k in zip(edges, kept, strict=True)]
+    edges = [*(replace(e, accepted=k) for e, k in zip(edges, kept, strict=True)), *inconsistent]
     rejected = sum(e.kind == "loop" and not e.accepted for e in edges)
     if rejected:
-        warnings.append(f"the optimiser rejected {rejected} of {len(loops)} loop closures (inconsistent with the "
-                        "rest of the graph); graph_edges.parquet lists them with accepted = false")
+        warnings.append(f"{len(inconsistent)} of {len(loops)} loop closures disagree with the largest mutually "
+                        f"consistent set and the optimiser rejected {rejected - len(inconsistent)} more; "
+                        "graph_edges.parquet lists them with accepted = false")
     return GraphResult(interpolate(odometry, keyframes, opt), keyframes, opt, kcov, edges, bias, warnings)

@@ -107,14 +107,35 @@ class Match:
     n_points: int
 
 
+def log_prior(offsets: F64, prior_cov: F64 | None) -> F64:
+    """``-1/2 d^T S^-1 d`` of pose offsets ``(..., 3)`` from the guess under the prior covariance ``S``; 0 without."""
+    if prior_cov is None:
+        return np.zeros(offsets.shape[:-1])
+    info = np.linalg.inv(prior_cov)
+    return -0.5 * np.einsum("...i,ij,...j->...", offsets, info, offsets)
+
+
+def _grid_offsets(yaws: F64, xy_offs: F64, guess: F64) -> F64:
+    """Pose offsets from ``guess`` of a (yaw, x, y) candidate grid, ``(n_yaw, n_x, n_y, 3)``."""
+    dyaw = yaws - guess[2]
+    dx, dy = np.meshgrid(xy_offs[0], xy_offs[1], indexing="ij")
+    out = np.empty((len(yaws), *dx.shape, 3))
+    out[..., 0], out[..., 1], out[..., 2] = dx[None], dy[None], dyaw[:, None, None]
+    return out
+
+
 def match(reference: F64, query: F64, guess: npt.ArrayLike, model: MatcherModel, search_xy: float,
-          search_yaw_deg: float, field: LikelihoodField | None = None) -> Match:
+          search_yaw_deg: float, field: LikelihoodField | None = None, prior_cov: F64 | None = None) -> Match:
     """Register ``query (N, 2)`` (its own frame) against ``reference (M, 2)``: the pose of the query frame in the
     reference frame that maximises the summed field log-likelihood within ``search_xy`` (m) and ``search_yaw_deg``
     of ``guess (3,)``. Coarse level: the field pooled by ``coarse_factor``, yaw steps of ``coarse_factor`` fine
     steps, over the whole window; fine level: the best ``candidates`` coarse poses refined over one coarse cell
-    and step. The covariance is that of the fine candidates weighted by ``exp(score / temperature)`` (Olson,
-    Sec. III-D), at least the search resolution's own (cell^2 / 12)."""
+    and step. With ``prior_cov`` (the covariance of the pose around ``guess``, in the reference frame) the
+    candidates are ranked by their posterior, ``score / temperature`` plus the Gaussian log prior (Olson, Sec.
+    III-B), so that an aliased match far from what the odometry allows loses to a nearby one; without it, by the
+    score alone. The covariance is that of the fine candidates weighted by ``exp(score / temperature)``, the
+    likelihood alone (Olson, Sec. III-D; the prior is the odometry's, which the graph holds already), at least
+    the search resolution's own (cell^2 / 12)."""
     guess = np.asarray(guess, dtype=np.float64).reshape(3)
     q = np.asarray(query, dtype=np.float64).reshape(-1, 2)
     if field is None:
@@ -129,20 +150,24 @@ def match(reference: F64, query: F64, guess: npt.ArrayLike, model: MatcherModel,
     yaws = guess[2] + coarse_step * np.arange(-n_yaw, n_yaw + 1)
     half = int(np.ceil(search_xy / coarse.resolution))
     sc, offs = _scores(coarse, q, yaws, guess[:2], half)
-    flat = np.argsort(sc.ravel())[::-1][: model.candidates]
+    rank = sc / model.temperature + log_prior(_grid_offsets(yaws, np.stack([offs, offs]), guess), prior_cov)
+    flat = np.argsort(rank.ravel())[::-1][: model.candidates]
     best_score = -np.inf
-    best: tuple[float, F64, F64, F64] | None = None
+    best: tuple[F64, F64, F64, F64] | None = None
     for k in flat:
         a, i, j = np.unravel_index(k, sc.shape)
         centre = guess[:2] + np.array([offs[i], offs[j]])
         fy = yaws[a] + fine_step * np.arange(-f, f + 1)
         fs, foffs = _scores(field, q, fy, centre, f)
-        m = float(fs.max())
+        fr = fs / model.temperature + log_prior(
+            _grid_offsets(fy, np.stack([centre[0] - guess[0] + foffs, centre[1] - guess[1] + foffs]), guess),
+            prior_cov)
+        m = float(fr.max())
         if m > best_score:
-            best_score, best = m, (m, fs, fy, centre + np.stack(np.meshgrid(foffs, foffs, indexing="ij"), -1))
+            best_score, best = m, (fr, fs, fy, centre + np.stack(np.meshgrid(foffs, foffs, indexing="ij"), -1))
     assert best is not None
-    _, fs, fy, xy = best
-    a, i, j = np.unravel_index(int(np.argmax(fs)), fs.shape)
+    post, fs, fy, xy = best  # posterior, likelihood, yaws, translations of the fine window
+    a, i, j = np.unravel_index(int(np.argmax(post)), post.shape)
     pose = np.array([xy[i, j, 0], xy[i, j, 1], fy[a]])
     w = np.exp((fs - fs.max()) / model.temperature)
     w /= w.sum()
@@ -157,4 +182,4 @@ def match(reference: F64, query: F64, guess: npt.ArrayLike, model: MatcherModel,
     ok = (idx[:, 0] >= 0) & (idx[:, 0] < nx) & (idx[:, 1] >= 0) & (idx[:, 1] < ny)
     dist = np.full(len(q), np.inf)
     dist[ok] = field.distance[idx[ok, 0], idx[ok, 1]]
-    return Match(pose, cov, float(fs.max()) / len(q), float(np.mean(dist <= model.inlier_distance)), len(q))
+    return Match(pose, cov, float(fs[a, i, j]) / len(q), float(np.mean(dist <= model.inlier_distance)), len(q))
