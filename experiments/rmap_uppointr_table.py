@@ -2,12 +2,11 @@
 ground truth, beside the paper's values, with the Overall row (mean of the scene rows).
 
 The completed map takes the `complete` stage's path: Algorithm 1's patches at ``a`` (a_test = 4), every
-patch through the network, predictions merged and assembled at 0.15 m: ``average`` (the paper's Sec. V:
-the mean of the points in each voxel) and/or ``snap`` (the voxel centres, on the maps' lattice), both
-from the same network output. Run it as
+patch through the network, predictions merged and assembled at 0.15 m (the paper's Sec. V: the mean of the
+points in each voxel). Run it as
 
     python -m experiments.rmap_uppointr_table --maps ../shared/data/coloradar_maps \
-        --checkpoint data/models/rmap_coloradar_small.safetensors --assembly average,snap --out runs/table3.md
+        --checkpoint data/models/rmap_coloradar_small.safetensors --out runs/table3.md
 """
 
 from __future__ import annotations
@@ -21,7 +20,6 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from stages.complete.data import ASSEMBLIES, Assembly
 from stages.complete.paper_table3 import KEYS, OVERALL, TABLE3, as_dict
 
 LABELS = ("CD-l1", "CD-l2", "F@0.15", "D50", "D75", "D90", "D95")
@@ -29,22 +27,15 @@ LABELS = ("CD-l1", "CD-l2", "F@0.15", "D50", "D75", "D90", "D95")
 
 def evaluate_scenes(root: str | Path, scenes: Sequence[str], checkpoint: str | Path, a: float = 4.0,
                     resolution: float = 0.15, device: str = "cpu", batch_size: int = 8, seed: int = 0,
-                    advance: Callable[[str], None] | None = None,
-                    assemblies: Sequence[Assembly] = ("average",)) -> list[dict[str, Any]]:
-    """Per scene: the input and completed maps' metrics, patch count and network seconds per patch.
-
-    The network runs once per scene; each of ``assemblies`` turns its merged output into a map, scored as
-    ``completed_<assembly>``; ``completed`` is the first of them.
-    """
+                    advance: Callable[[str], None] | None = None) -> list[dict[str, Any]]:
+    """Per scene: the input and completed maps' metrics, patch count and network seconds per patch."""
     from sources.mapset import read_index
     from stages.complete.checkpoint import load_checkpoint
-    from stages.complete.data import assemble_map
+    from stages.complete.data import voxel_downsample
     from stages.complete.infer import resolve_device
     from stages.complete.map_eval import predict_map, score
     from stages.complete.maps import read_scene, scene_patches
 
-    if not assemblies:
-        raise ValueError("evaluate_scenes: no assembly given")
     info = read_index(root)
     dev = resolve_device(device)
     model, meta = load_checkpoint(checkpoint, dev)
@@ -58,9 +49,7 @@ def evaluate_scenes(root: str | Path, scenes: Sequence[str], checkpoint: str | P
                                "gt_source": info[name].gt_source, "n_patches": len(patches),
                                "seconds_per_patch": spp, "seconds": time.perf_counter() - t0,
                                "input": score(radar, gt)}
-        for asm in assemblies:
-            row[f"completed_{asm}"] = score(assemble_map(merged, resolution, asm)[0], gt)
-        row["completed"] = row[f"completed_{assemblies[0]}"]
+        row["completed"] = score(voxel_downsample(merged, resolution)[0], gt)
         rows.append(row)
         if advance is not None:
             advance(name)
@@ -76,24 +65,18 @@ def _fmt(d: dict[str, float]) -> str:
     return " | ".join(f"{d[k]:.3f}" for k in KEYS)
 
 
-def _assemblies(rows: Sequence[dict[str, Any]]) -> list[str]:
-    return [k.removeprefix("completed_") for k in rows[0] if k.startswith("completed_")] if rows else []
-
-
 #: the second table's columns: both F-score forms (map_metrics: strict ``<`` and the robust form)
 F_KEYS = ("cd_l1", "cd_l2", "fscore_0.15", "fscore_0.15_robust", "precision_0.15_robust", "recall_0.15_robust")
 F_LABELS = ("CD-l1", "CD-l2", "F@0.15 exact", "F@0.15 robust", "P robust", "R robust")
 
 
 def render(rows: Sequence[dict[str, Any]], checkpoint: str, a: float) -> str:
-    """Markdown: per scene paper input | ours input | paper RMap | ours completed (one row per assembly),
-    then the Overall rows; then both F-score forms per scene and Overall."""
+    """Markdown: per scene paper input | ours input | paper RMap | ours completed, then the Overall rows; then
+    both F-score forms per scene and Overall."""
     head = " | ".join(LABELS)
-    asms = _assemblies(rows) or ["average"]
-    maps = [(f"ours completed ({asm})", f"completed_{asm}") if f"completed_{asm}" in (rows[0] if rows else {})
-            else ("ours completed", "completed") for asm in asms]
+    maps = [("ours completed", "completed")]
     out = [f"Table III on {len(rows)} scenes, checkpoint `{checkpoint}`, a_test = {a:g}, merged predictions "
-           f"assembled at 0.15 m ({', '.join(asms)}). `*` = ground truth rebuilt from the published patches.",
+           "averaged per 0.15 m voxel. `*` = ground truth rebuilt from the published patches.",
            "", f"| scene | map | {head} |", "| --- | --- |" + " --- |" * len(KEYS)]
     for r in rows:
         name = r["scene"] + ("*" if r["gt_source"] != "map" else "")
@@ -145,8 +128,6 @@ def main(
     batch_size: Annotated[int, typer.Option("--batch-size", help="patches per forward pass (paper's timing: 1)")] = 8,
     threads: Annotated[int | None, typer.Option("--threads", help="torch CPU threads")] = None,
     out: Annotated[Path | None, typer.Option("--out", help="write the markdown here (and .json beside it)")] = None,
-    assembly: Annotated[str, typer.Option("--assembly", help="map assembly, one or more of average (the paper's "
-                                          "mean per voxel), snap (voxel centres), comma-separated")] = "average",
 ) -> None:
     """Table III (input vs completed, beside the paper) for the scenes of a map set."""
     import torch
@@ -156,10 +137,6 @@ def main(
     from sources.mapset import read_index
     from stages.complete.maps import validation_scenes
 
-    asms = [x.strip() for x in assembly.split(",") if x.strip()]
-    bad = [x for x in asms if x not in ASSEMBLIES]
-    if bad or not asms:
-        raise typer.BadParameter(f"{', '.join(bad) or 'nothing'}: use average and/or snap", param_hint="--assembly")
     if threads is not None:
         torch.set_num_threads(threads)
     info = read_index(maps)
@@ -176,7 +153,7 @@ def main(
     with Progress(console=console, transient=True) as prog:
         task = prog.add_task("scenes", total=len(names))
         rows = evaluate_scenes(maps, names, checkpoint, a, device=device, batch_size=batch_size,
-                               advance=lambda _n: prog.advance(task), assemblies=asms)  # type: ignore[arg-type]
+                               advance=lambda _n: prog.advance(task))
     text = render(rows, checkpoint, a)
     print(text)
     if out is not None:

@@ -77,19 +77,11 @@ def output_row(table: dict[str, Any]) -> str:
     return gate_row(union["gate"]) if union["gate"] > 0 else "voxel + prefiltered radar"
 
 
-def subvoxel_row(strength: float) -> str:
-    """The row of the checkpoint's own output placed off the lattice (:func:`voxel_net.subvoxel_points`)."""
-    return f"voxel output, sub-voxel {strength:g}"
-
-
 def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core: int | None = None,
               log: Any = print, only: list[str] | None = None, device: str = "cpu", bf16: bool = False,
-              gates: tuple[float, ...] = (), tta: int | None = None,
-              subvoxel: tuple[float, ...] = ()) -> dict[str, Any]:
+              gates: tuple[float, ...] = ()) -> dict[str, Any]:
     """Rows ``{row: {scene: metrics}}`` and timings for the scenes of ``split`` (test, val). ``gates``: also the
-    gated unions (:func:`gate_row`); the checkpoint's own gate, if it has one, is always a row. ``tta``: the
-    lattice symmetries averaged (None: the checkpoint's own count). ``subvoxel``: also the checkpoint's own
-    output (its union and gate) placed off the lattice with these strengths (:func:`subvoxel_row`)."""
+    gated unions (:func:`gate_row`); the checkpoint's own gate, if it has one, is always a row."""
     from core.rmap_paper import TABLE_III
     from sources.mapset import read_index, read_map_set
     from stages.complete.maps import map_split
@@ -99,7 +91,6 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
     if only:
         scenes = [s for s in scenes if s in only]
     model = meta = None
-    n_sym = 1  # the symmetries averaged: set with the checkpoint
     heap: AbstractContextManager[None] = nullcontext()
     if checkpoint is not None:
         from stages.complete.voxel_checkpoint import load_voxel_checkpoint
@@ -107,11 +98,9 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
 
         model, meta = load_voxel_checkpoint(checkpoint, device=device)
         heap = reuse_freed_memory()
-        n_sym = meta.tta if tta is None else tta
     if meta is not None and meta.union_radar and meta.union_gate > 0 and meta.union_gate not in gates:
         gates = (*gates, meta.union_gate)
-    rows: dict[str, dict[str, dict[str, float]]] = {r: {} for r in (*ROWS, *(gate_row(g) for g in gates),
-                                                               *(subvoxel_row(v) for v in subvoxel))}
+    rows: dict[str, dict[str, dict[str, float]]] = {r: {} for r in (*ROWS, *(gate_row(g) for g in gates))}
     seconds: dict[str, float] = {}
     cost = {"voxels_run": 0.0, "feature_seconds": 0.0, "model_seconds": 0.0}
     with heap:  # one heap for every scene's activations: no page faults anew per scene
@@ -129,8 +118,7 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
                 res = meta.resolution
                 rk = lattice_keys(trajectory_band(m.radar, m.trajectory, meta.band), res, f"{s} radar map")
                 t0 = time.perf_counter()
-                pred = predict_tiles(model, rk, m.trajectory, res, meta.band, core=core, device=device, bf16=bf16,
-                                     tta=n_sym)
+                pred = predict_tiles(model, rk, m.trajectory, res, meta.band, core=core, device=device, bf16=bf16)
                 seconds[s] = time.perf_counter() - t0
                 cost["voxels_run"] += pred.n_voxels_run
                 cost["feature_seconds"] += pred.feature_seconds
@@ -141,12 +129,6 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
                 rows["voxel + prefiltered radar"][s] = score(union, gt)
                 for g in gates:
                     rows[gate_row(g)][s] = score(key_centres(completed_keys(pred, meta.threshold, rk, g), res), gt)
-                if subvoxel:
-                    from stages.complete.voxel_net import subvoxel_points
-
-                    own = meta.output_keys(pred, rk)
-                    for v in subvoxel:
-                        rows[subvoxel_row(v)][s] = score(subvoxel_points(pred, own, res, v), gt)
             log(f"{s}: " + "  ".join(f"{r} {v[s]['cd_l2']:.3f}/{v[s]['fscore_0.15']:.3f}" for r, v in rows.items()
                                      if s in v and r in ROWS) + (f"  ({seconds[s]:.1f} s)" if s in seconds else ""))
     out: dict[str, Any] = {"split": split, "scenes": scenes, "band": band.__dict__, "rows": rows,
@@ -158,7 +140,6 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
         out["device"] = device
         out["bf16"] = bf16
         out["threshold"] = meta.threshold if meta else None
-        out["tta"] = n_sym
         out["union"] = {"radar": meta.union_radar, "gate": meta.union_gate} if meta else None
     return out
 
@@ -273,22 +254,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="write <out>.json and <out>.md")
     ap.add_argument("--decide-union", action="store_true", help="--split val: apply UNION_RULE and store the "
                     "decision in the checkpoint")
-    ap.add_argument("--tta", type=int, default=None, choices=(1, 2, 4, 8), help="lattice symmetries averaged "
-                    "(default: the checkpoint's own count)")
-    ap.add_argument("--decide-tta", action="store_true", help="--split val: first apply TTA_RULE on the validation "
-                    "crops and store the symmetry count and its threshold in the checkpoint")
     ap.add_argument("--gates", action="store_true", help="also score the gated unions of GATES (up to the threshold)")
     ap.add_argument("--decide-gate", action="store_true", help="--split val: score every gate, apply GATE_RULE and "
                     "store the gate in the checkpoint")
-    ap.add_argument("--subvoxel", default="", help="comma-separated strengths in [0, 1]: also the checkpoint's "
-                    "output placed off the lattice (voxel_net.subvoxel_points; a diagnostic of the F-score's ties)")
     args = ap.parse_args(argv)
-    try:
-        subvoxel = tuple(float(v) for v in args.subvoxel.split(",") if v.strip())
-    except ValueError:
-        raise SystemExit(f"error: --subvoxel {args.subvoxel!r}: give numbers in [0, 1], e.g. 0.01,0.25") from None
-    if any(not 0.0 <= v <= 1.0 for v in subvoxel):
-        raise SystemExit(f"error: --subvoxel {args.subvoxel!r}: every strength must be within [0, 1]")
     ref = None
     if not args.no_model:
         import torch
@@ -297,13 +266,6 @@ def main(argv: list[str] | None = None) -> int:
             torch.set_num_threads(args.threads)
         ref = mm_gflops(device=args.device)
     ckpt = None if args.no_model else (args.checkpoint or Path("data/models/rmap_voxel.safetensors"))
-    if args.decide_tta and ckpt is not None:
-        if args.split != "val" or args.scenes or args.tta is not None:
-            raise SystemExit("error: --decide-tta needs --split val over all validation scenes, without --tta")
-        from stages.complete.train_voxel import TTA_RULE, decide_tta
-
-        n, t = decide_tta(args.maps, ckpt)
-        print(f"symmetries averaged: {n}, threshold {t} ({TTA_RULE})")
     gates: tuple[float, ...] = ()
     if (args.gates or args.decide_gate) and ckpt is not None:
         from stages.complete.voxel_checkpoint import load_voxel_checkpoint
@@ -311,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
         gates = tuple(g for g in GATES if g <= load_voxel_checkpoint(ckpt)[1].threshold)
     table = run_table(args.maps, args.split, ckpt, Band(), args.core,
                       only=args.scenes.split(",") if args.scenes else None, device=args.device,
-                      bf16=args.bf16, gates=gates, tta=args.tta, subvoxel=subvoxel)
+                      bf16=args.bf16, gates=gates)
     if ref is not None:
         import torch
 
@@ -325,9 +287,8 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit("error: --decide-union needs --split val over all validation scenes")
         print(f"\nunion with the pre-filtered radar: {write_union(ckpt, table)} ({UNION_RULE})")
     if args.decide_gate and ckpt is not None:
-        if args.split != "val" or args.scenes or args.tta is not None:
-            raise SystemExit("error: --decide-gate needs --split val over all validation scenes, with the "
-                             "checkpoint's own symmetry count (no --tta)")
+        if args.split != "val" or args.scenes:
+            raise SystemExit("error: --decide-gate needs --split val over all validation scenes")
         print(f"\ngate of the union with the pre-filtered radar: {write_gate(ckpt, table)} ({GATE_RULE})")
     if "inference_seconds" in table:
         print(f"\ninference {table['inference_seconds']:.1f} s for {len(table['scenes'])} scenes "

@@ -62,7 +62,7 @@ COLORADAR_ERRORS: dict[str, float] = {
 }
 
 #: RadarParams overrides of the twins (the AWR1843 defaults of simulator.params otherwise), picked by
-#: benchmarks/twins_tune_radar.py on three of RMap's *train* scenes (aspen_run9, arpg_lab_run2,
+#: experiments/twins_tune_radar.py on three of RMap's *train* scenes (aspen_run9, arpg_lab_run2,
 #: ec_hallways_run4; never on the twins' own scenes): the trial of 13 with the smallest mean
 #: |log L/R ratio| + |log CD-l2 ratio| against the real radar maps (README "ColoRadar twins",
 #: docs/twins_radar_trials.csv)

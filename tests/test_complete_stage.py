@@ -18,7 +18,6 @@ from core.stage import StageContext
 from pipeline.sequences import SequenceInfo
 from schemas import read_artifact, write_artifact
 from stages.complete.data import (
-    assemble_map,
     denormalize,
     normalize,
     read_patches,
@@ -80,26 +79,8 @@ def test_voxel_downsample_matches_loop() -> None:
     assert counts.sum() == len(pts) and len(got) == len(groups)
     empty, c = voxel_downsample(np.zeros((0, 3)), res)
     assert empty.shape == (0, 3) and c.shape == (0,)
-
-
-def test_assembly_average_and_snap_share_the_voxels() -> None:
-    """RMap Sec. V's mean per voxel and the lattice snap: same voxels, same counts, in the same order."""
-    rng = np.random.default_rng(3)
-    res = 0.15
-    pts = rng.uniform(-2, 2, size=(3000, 3))
-    avg, c_avg = assemble_map(pts, res, "average")
-    snap, c_snap = assemble_map(pts, res, "snap")
-    np.testing.assert_array_equal(c_avg, c_snap)
-    keys = np.floor(avg / res)
-    np.testing.assert_array_equal(keys, np.floor(snap / res))
-    np.testing.assert_array_equal(snap, (keys + 0.5) * res)
-    assert np.abs(avg - snap).max() <= res / 2 + 1e-12 and np.abs(avg - snap).max() > 0
-    np.testing.assert_array_equal(avg, voxel_downsample(pts, res)[0])
-    on_lattice = (rng.integers(-10, 10, size=(50, 3)) + 0.5) * res  # voxel centres stay where they are
-    np.testing.assert_array_equal(assemble_map(on_lattice, res, "snap")[0], np.unique(on_lattice, axis=0))
-    with pytest.raises(ValueError, match="unknown assembly 'nearest'"):
-        assemble_map(pts, res, "nearest")  # type: ignore[arg-type]
-    assert assemble_map(np.zeros((0, 3)), res, "snap")[0].shape == (0, 3)
+    with pytest.raises(ValueError, match="resolution must be > 0"):
+        voxel_downsample(pts, 0.0)
 
 
 def test_split_by_sequence_follows_the_paper() -> None:
@@ -169,19 +150,7 @@ def test_stage_identity_model_puts_patches_back_in_world(tmp_path: Path, monkeyp
     expected, _ = voxel_downsample(np.concatenate([p.radar for p in back]), 0.15)
     np.testing.assert_allclose(got, expected, atol=2e-5)
     assert ctx.stats["n_patches"] == len(patches) and ctx.stats["n_points"] == len(expected)
-    assert ctx.stats["assembly"] == "average"
 
-    (tmp_path / "snap").mkdir()
-    snap = _context(tmp_path / "snap", CompleteParams(checkpoint=str(ckpt), resolution=0.15, assembly="snap"))
-    _write_patches(tmp_path / "snap" / "patches" / "patches.parquet", n=3, n_radar=256)
-    STAGE.run(snap)
-    snap.close()
-    table = read_artifact(snap.output("completed_map.parquet"), "completed_map")
-    centres = np.stack([table.column(c).to_numpy() for c in "xyz"], axis=1)
-    keys = np.round(centres / 0.15 - 0.5)
-    np.testing.assert_array_equal(centres, (keys + 0.5) * 0.15)  # on the lattice, bit for bit
-    np.testing.assert_array_equal(keys, np.floor(expected / 0.15))  # the average's voxels, in its order
-    assert snap.stats["assembly"] == "snap"
 
 
 def test_stage_with_tiny_checkpoint(tmp_path: Path) -> None:

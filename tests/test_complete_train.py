@@ -192,15 +192,13 @@ def test_map_table_scores_input_and_completed(tmp_path: Path) -> None:
     _write_map_set(maps)
     torch.manual_seed(0)
     ckpt = save_checkpoint(tmp_path / "t.safetensors", UpPoinTr(TINY), CheckpointMeta(TINY, 2.0, {}))
-    rows = evaluate_scenes(maps, ["lab_run0"], ckpt, a=1.0, assemblies=("average", "snap"))
+    rows = evaluate_scenes(maps, ["lab_run0"], ckpt, a=1.0)
     radar = pq.read_table(maps / "lab_run0" / "radar.parquet").to_pandas().to_numpy()
     gt = pq.read_table(maps / "lab_run0" / "lidar_filtered.parquet").to_pandas().to_numpy()
     assert rows[0]["input"]["cd_l2"] == pytest.approx(map_metrics(radar, gt)["cd_l2"])
     assert rows[0]["n_patches"] == 1 and rows[0]["completed"]["n_points"] > 0
     assert overall(rows, "completed")["cd_l1"] == rows[0]["completed"]["cd_l1"]
     text = render(rows, "t.safetensors", 1.0)
-    assert "| lab_run0 | ours completed (average) |" in text and "| lab_run0 | ours completed (snap) |" in text
-    assert "Overall (paper, 21 scenes)" in text and "| Overall (1 scenes) | ours completed (snap) |" in text
-    avg, snap = rows[0]["completed_average"], rows[0]["completed_snap"]
-    assert rows[0]["completed"] == avg and avg["n_points"] == snap["n_points"]  # one network run, same voxels
-    assert {"fscore_0.15_robust", "precision_0.15", "recall_0.15_robust"} <= set(snap)
+    assert "| lab_run0 | ours completed |" in text
+    assert "Overall (paper, 21 scenes)" in text and "| Overall (1 scenes) | ours completed |" in text
+    assert {"fscore_0.15_robust", "precision_0.15", "recall_0.15_robust"} <= set(rows[0]["completed"])

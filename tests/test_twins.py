@@ -271,8 +271,8 @@ def test_twin_radar_overrides_reach_the_simulation_only_for_twins() -> None:
 
 
 def test_tuning_radar_map_equals_the_voxel_stage_sensor_model() -> None:
-    """benchmarks.twins_tune_radar.radar_map = the voxel stage's fan model with radar_prob_miss 0.5."""
-    from benchmarks.twins_tune_radar import radar_map
+    """experiments.twins_tune_radar.radar_map = the voxel stage's fan model with radar_prob_miss 0.5."""
+    from experiments.twins_tune_radar import radar_map
     from simulator import rig
     from simulator.simulate import Simulation
     from stages.voxel.radar_model import fan_directions, radar_scan_keys
@@ -296,7 +296,7 @@ def test_tuning_radar_map_equals_the_voxel_stage_sensor_model() -> None:
 
 
 def test_tuning_pick_rule_and_refusal_of_the_twin_scenes(capsys: pytest.CaptureFixture[str]) -> None:
-    from benchmarks.twins_tune_radar import GRID, main, pick, score, trials
+    from experiments.twins_tune_radar import GRID, main, pick, score, trials
 
     real = {"lr_ratio": 4.0, "cd_l2": 1.0}
     assert score({"lr_ratio": 4.0, "cd_l2": 1.0}, real) == 0.0

@@ -22,13 +22,11 @@ from stages.complete.voxel_grid import (  # noqa: E402
     voxel_features,
 )
 from stages.complete.voxel_net import (  # noqa: E402
-    SYMMETRIES,
     VoxelNetConfig,
     VoxelUNet,
     map_domain,
     predict_tiles,
     reuse_freed_memory,
-    symmetric_probability,
 )
 
 RES = 0.15
@@ -164,43 +162,6 @@ def test_tiled_inference_equals_one_pass(core: int) -> None:
     assert np.abs(short.probs[c] - one.probs[a]).max() > 1e-6
 
 
-def _act(x: torch.Tensor, k: int, mirror: bool, dims: tuple[int, int]) -> torch.Tensor:
-    """One lattice symmetry on the xy axes ``dims``: the mirror in x, then ``k`` quarter turns."""
-    return torch.rot90(torch.flip(x, (dims[0],)) if mirror else x, k, dims)
-
-
-@pytest.mark.parametrize("tta", [2, 4, 8])
-def test_symmetry_averaged_probability_is_equivariant(tta: int) -> None:
-    # the mean over a group of symmetries commutes with each of them, whatever the weights: this fails if an
-    # output is turned back onto the lattice the wrong way
-    model = _live_model()
-    x = torch.rand(1, 5, 16, 16, 8)
-    with torch.no_grad():
-        p = symmetric_probability(model, x, tta)
-        one = torch.sigmoid(model(x))
-        assert not torch.allclose(p, one, atol=1e-4)  # the average is not the network alone
-        for k, mirror in SYMMETRIES[:tta]:
-            moved = symmetric_probability(model, _act(x, k, mirror, (2, 3)), tta)
-            torch.testing.assert_close(moved, _act(p, k, mirror, (1, 2)), rtol=0, atol=1e-6)
-        assert torch.equal(symmetric_probability(model, x, 1), one)
-        with pytest.raises(ValueError, match="tta must be one of"):
-            symmetric_probability(model, x, 3)
-
-
-def test_tiled_symmetry_averaged_inference_equals_one_pass() -> None:
-    model = _live_model()
-    keys, path = _scene()
-    band = Band(radius=2.0, z_below=-1.5, z_above=1.5)
-    dom = map_domain(path, RES, band, model.stride())
-    one = predict_tiles(model, keys, path, RES, band, core=max(dom.shape[:2]) + model.stride(), tta=8)
-    tiled = predict_tiles(model, keys, path, RES, band, core=16, tta=8)
-    plain = predict_tiles(model, keys, path, RES, band, core=16)
-    a, b, c = (np.lexsort(t.keys.T) for t in (one, tiled, plain))
-    assert np.array_equal(one.keys[a], tiled.keys[b])
-    np.testing.assert_allclose(tiled.probs[b], one.probs[a], rtol=0, atol=1e-6)
-    assert np.abs(plain.probs[c] - one.probs[a]).max() > 1e-3
-
-
 def test_bf16_inference_is_close_to_float32_and_the_default_is_exact() -> None:
     """``bf16`` runs the network under bfloat16 autocast: the same voxels, probabilities close but not equal;
     without it the float32 result is unchanged."""
@@ -215,6 +176,7 @@ def test_bf16_inference_is_close_to_float32_and_the_default_is_exact() -> None:
     diff = np.abs(half.probs - ref.probs)
     assert diff.max() < 0.02 and diff.max() > 0
 
+
 def test_checkpoint_round_trip_and_kind_errors(tmp_path) -> None:
     from stages.complete.voxel_checkpoint import (
         VoxelMeta,
@@ -224,16 +186,15 @@ def test_checkpoint_round_trip_and_kind_errors(tmp_path) -> None:
     )
 
     model = VoxelUNet(VoxelNetConfig(widths=(3, 4)))
-    meta = VoxelMeta(model.config, RES, 0.4, Band(), train={"note": "test"}, tta=4)
+    meta = VoxelMeta(model.config, RES, 0.4, Band(), train={"note": "test"})
     path = save_voxel_checkpoint(tmp_path / "v.safetensors", model, meta, half=False)
     assert checkpoint_kind(path) == "voxel_unet"
     back, m2 = load_voxel_checkpoint(path)
-    assert m2.threshold == 0.4 and m2.resolution == RES and m2.config == model.config and m2.tta == 4
-    old = dict(meta.to_strings())
-    del old["tta"]  # a checkpoint written before the symmetry count existed: the network alone
-    assert VoxelMeta.from_strings(old, "old").tta == 1
-    with pytest.raises(UserError, match="tta '3' is not a symmetry count"):
-        VoxelMeta.from_strings(old | {"tta": "3"}, "bad")
+    assert m2.threshold == 0.4 and m2.resolution == RES and m2.config == model.config
+    strings = dict(meta.to_strings())
+    assert VoxelMeta.from_strings(strings | {"tta": "1"}, "older").threshold == 0.4  # the network alone: as now
+    with pytest.raises(UserError, match="averaged over 4 lattice symmetries"):
+        VoxelMeta.from_strings(strings | {"tta": "4"}, "averaged")
     for k, v in model.state_dict().items():
         assert torch.equal(back.state_dict()[k], v)
     from safetensors.torch import save_file
@@ -303,50 +264,3 @@ def test_the_checkpoints_own_output_row_follows_its_union_and_gate() -> None:
         "voxel + prefiltered radar" in ROWS
     gated = output_row({"union": {"radar": True, "gate": 0.01}})
     assert gated == gate_row(0.01) == "voxel + prefiltered radar, gate 0.01"
-
-
-def test_subvoxel_points_follow_the_neighbourhood_centroid() -> None:
-    """``subvoxel_points``: strength 0 is ``key_centres`` to the bit; a random prediction's offsets
-    equal a brute-force probability-weighted centroid of the 27 neighbours; a voxel with one believed neighbour
-    moves towards it only, an isolated or symmetric one not at all; no point leaves its voxel."""
-    from stages.complete.voxel_net import TilePrediction, subvoxel_points
-
-    rng = np.random.default_rng(3)
-    keys = np.unique(rng.integers(-6, 6, (500, 3)), axis=0)
-    probs = rng.random(len(keys)).astype(np.float32)
-    pred = TilePrediction(keys, probs)
-    q = keys[probs >= 0.5]
-    np.testing.assert_array_equal(subvoxel_points(pred, q, RES, 0.0), key_centres(q, RES))
-    lookup = {tuple(k): float(p) for k, p in zip(keys, probs, strict=True)}
-    for k, got in zip(q[:40], subvoxel_points(pred, q[:40], RES, 0.5)[:40], strict=True):
-        w = np.array([[lookup.get((k[0] + a, k[1] + b, k[2] + c), 0.0), a, b, c]
-                      for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
-        want = (k + 0.5 + 0.5 * (w[:, 0] @ w[:, 1:]) / w[:, 0].sum()) * RES
-        np.testing.assert_allclose(got, want, atol=1e-6)
-    out = subvoxel_points(pred, q, RES, 1.0)
-    assert np.all(np.abs(out / RES - (q + 0.5)) < 1.0)
-
-    pair = TilePrediction(np.array([[0, 0, 0], [1, 0, 0], [10, 0, 0], [20, 0, 0], [19, 0, 0], [21, 0, 0]]),
-                          np.array([0.6, 0.9, 0.7, 0.8, 0.5, 0.5], np.float32))
-    p = subvoxel_points(pair, pair.keys[[0, 2, 3]], RES, 0.5) / RES - (pair.keys[[0, 2, 3]] + 0.5)
-    assert p[0, 0] > 0 and p[0, 1] == p[0, 2] == 0  # towards its believed +x neighbour only
-    np.testing.assert_allclose(p[1:], 0.0, atol=1e-9)  # isolated; symmetric
-    with pytest.raises(ValueError, match="strength"):
-        subvoxel_points(pred, q, RES, 1.5)
-
-
-def test_subvoxel_placement_only_breaks_the_lattice_ties_of_the_fscore() -> None:
-    """Why the sub-voxel rows are a diagnostic: a map one voxel off its ground truth scores 0 in the robust
-    F@0.15 on the lattice and 1 once nudged by 1.5 mm towards it, while the tie-free F@0.20 is 1 both ways."""
-    from experiments.rmap_voxel_table3 import score
-    from stages.complete.voxel_net import TilePrediction, subvoxel_points
-
-    gt_keys = np.stack([np.arange(20), np.zeros(20, np.int64), np.zeros(20, np.int64)], 1)
-    off = gt_keys + np.array([0, 1, 0])  # one voxel beside every ground-truth voxel
-    pred = TilePrediction(np.concatenate([off, gt_keys]),
-                          np.concatenate([np.full(20, 0.9), np.full(20, 0.4)]).astype(np.float32))
-    on = score(key_centres(off, RES), key_centres(gt_keys, RES))
-    nudged = score(subvoxel_points(pred, off, RES, 0.01), key_centres(gt_keys, RES))
-    assert on["fscore_0.15_robust"] == 0.0 and nudged["fscore_0.15_robust"] == 1.0
-    assert on["fscore_0.2"] == nudged["fscore_0.2"] == 1.0
-    assert nudged["cd_l1"] < on["cd_l1"]

@@ -9,7 +9,6 @@ import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -116,43 +115,16 @@ def patch_scale(patches: Sequence[Patch], quantile: float = 0.5) -> float:
 
 
 def voxel_downsample(points: npt.ArrayLike, resolution: float) -> tuple[F64, npt.NDArray[np.int64]]:
-    """Mean of the points in every occupied voxel (``floor(p / res)`` as the voxel keys), with counts.
-
-    RMap Sec. IV-B: the merged patches are downsampled to the map resolution by averaging the points that
-    fall into each ``res^3`` cell. Output sorted by voxel key.
-    """
-    return assemble_map(points, resolution, "average")
-
-
-#: how predicted patches become a map (:func:`assemble_map`)
-Assembly = Literal["average", "snap"]
-ASSEMBLIES: tuple[Assembly, ...] = ("average", "snap")
-
-
-def assemble_map(points: npt.ArrayLike, resolution: float,
-                 assembly: Assembly = "average") -> tuple[F64, npt.NDArray[np.int64]]:
-    """The completed map from the merged predicted patches: one point per occupied ``resolution`` voxel.
-
-    The voxels are ``floor(p / res)`` (the lattice of the voxel stage and of the published maps, whose
-    points are the centres ``(k + 1/2) res``); ``counts`` is the number of predicted points in each.
-
-    - ``average`` (RMap Sec. V: merge, then downsample to 0.15 m by averaging the points in each voxel):
-      the mean of the voxel's points, off the lattice;
-    - ``snap``: the voxel's centre ``(k + 1/2) res``, on the lattice of the input and ground-truth maps.
-
-    Both give the same voxels in the same order (sorted by key); only the point inside each voxel differs.
-    """
+    """The completed map from the merged predicted patches (RMap Sec. IV-B, V: merge, then downsample to the map
+    resolution by averaging the points in each voxel): one point per occupied voxel ``floor(p / res)``, the mean of
+    its points, sorted by key; ``counts`` is the number of predicted points in each."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if resolution <= 0:
         raise ValueError(f"resolution must be > 0, got {resolution}")
-    if assembly not in ASSEMBLIES:
-        raise ValueError(f"unknown assembly {assembly!r} (average | snap)")
     if len(pts) == 0:
         return np.zeros((0, 3)), np.zeros(0, np.int64)
     keys = np.floor(pts / resolution).astype(np.int64)
-    uniq, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    if assembly == "snap":
-        return (uniq.astype(np.float64) + 0.5) * resolution, counts.astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
     sums = np.stack([np.bincount(inverse, weights=pts[:, j], minlength=len(counts)) for j in range(3)], axis=1)
     return sums / counts[:, None], counts.astype(np.int64)

@@ -13,7 +13,7 @@ import torch
 from core.map_metrics import map_metrics
 from core.rmap_paper import MAP_KEYS
 from stages.complete.checkpoint import CheckpointMeta
-from stages.complete.data import F64, Assembly, Patch, assemble_map
+from stages.complete.data import F64, Patch, voxel_downsample
 from stages.complete.infer import complete_patches
 from stages.complete.model import UpPoinTr
 
@@ -28,12 +28,11 @@ def predict_map(model: UpPoinTr, meta: CheckpointMeta, patches: Sequence[Patch],
 
 
 def complete_map(model: UpPoinTr, meta: CheckpointMeta, patches: Sequence[Patch], device: torch.device,
-                 resolution: float = 0.15, batch_size: int = 8, seed: int = 0,
-                 assembly: Assembly = "average") -> tuple[F64, float]:
+                 resolution: float = 0.15, batch_size: int = 8, seed: int = 0) -> tuple[F64, float]:
     """(completed map, network seconds per patch): merged predictions assembled at ``resolution``
-    (:func:`stages.complete.data.assemble_map`; ``average`` = the paper's mean per voxel)."""
+    (:func:`stages.complete.data.voxel_downsample`, the paper's mean per voxel)."""
     merged, spp = predict_map(model, meta, patches, device, batch_size, seed)
-    down, _ = assemble_map(merged, resolution, assembly)
+    down, _ = voxel_downsample(merged, resolution)
     return down, spp
 
 

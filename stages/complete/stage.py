@@ -2,8 +2,7 @@
 
 ``model = uppointr`` (default): runs a trained UpPoinTr checkpoint over every radar patch of the sequence,
 puts the predicted patches back in world coordinates, merges them and assembles the map at the voxel
-resolution: ``assembly = average`` (the paper's Sec. V, the mean of the points in each voxel; the default) or
-``snap`` (the voxel centres, on the lattice of the radar and lidar maps). ``model = voxel``: the
+resolution (the paper's Sec. V: the mean of the points in each voxel). ``model = voxel``: the
 voxel U-Net (``voxel_net.py``) predicts the occupancy of every voxel of the radar map's lattice inside the
 trajectory band, thresholded at the checkpoint's validation threshold; it needs the recorded trajectory
 (``map_trajectory.parquet``: a map set's recorded one, or the one a log's radar map was built along).
@@ -31,7 +30,7 @@ from pydantic import Field
 from core.errors import UserError
 from core.paths import PROJECT_ROOT
 from core.stage import Stage, StageContext, StageParams
-from stages.complete.data import F64, Assembly, assemble_map, read_patches
+from stages.complete.data import F64, read_patches, voxel_downsample
 from stages.complete.voxel_grid import Band, in_band, trajectory_band
 
 if TYPE_CHECKING:
@@ -95,19 +94,12 @@ class CompleteParams(StageParams):
     bf16: bool = Field(False, description="voxel model: run the network under bfloat16 autocast (1.5x faster on a "
                        "CPU with bf16 support, Table III unchanged to the printed digit on the 18 test scenes; the "
                        "probabilities differ slightly, so the map may differ by a few voxels)")
-    tta: Literal[1, 2, 4, 8] | None = Field(None, description="voxel model: lattice symmetries (quarter turns "
-                                           "about z, mirror) whose predictions are averaged, each costing one "
-                                           "pass; None = the checkpoint's own count, with which its threshold "
-                                           "was chosen")
     batch_size: int = Field(8, ge=1, le=4096, description="patches per forward pass")
     seed: int = Field(0, description="seed of the input resampling (patches with more or fewer points than the "
                       "network's input size) and of torch")
     resolution: float | None = Field(None, ge=0.01, description="downsampling voxel size (m); None = the voxel "
                                      "stage's resolution (RMap: the map resolution, 0.15 m)")
     threads: int | None = Field(None, ge=1, le=256, description="torch CPU threads (None = torch's default)")
-    assembly: Assembly = Field("average", description="how the merged predicted patches become the map, one "
-                               "point per occupied voxel: average = the mean of its points (RMap Sec. V); snap = "
-                               "its centre (k + 1/2) * resolution, on the lattice of the voxel maps")
 
 
 def resolve_checkpoint(path: str, kind: str = "simulated", model: str = "uppointr") -> Path:
@@ -261,7 +253,7 @@ class CompleteStage(Stage):
             result = complete_patches(model, meta, patches, device, p.batch_size, p.seed, advance)
         wall = time.perf_counter() - t0
         merged = np.concatenate(result.points) if result.points else np.zeros((0, 3))
-        down, counts = assemble_map(merged, res, p.assembly)
+        down, counts = voxel_downsample(merged, res)
         if not patches:
             ctx.warn("the patches artifact holds no radar patches; the completed map is empty")
         return down, {
@@ -270,7 +262,6 @@ class CompleteStage(Stage):
             "n_points_predicted": len(merged),
             "n_points": len(down),
             "resolution": res,
-            "assembly": p.assembly,
             "device": str(device),
             "checkpoint": str(ckpt.relative_to(PROJECT_ROOT) if ckpt.is_relative_to(PROJECT_ROOT) else ckpt),
             "model_size": meta.train.get("config", {}).get("size", ""),
@@ -346,13 +337,12 @@ class CompleteStage(Stage):
             if len(keys) == 0:
                 raise UserError(f"{radar_path}: no radar voxel within the pre-filter band of the trajectory "
                                 f"({self.band(p)}); widen complete.band_* or set complete.prefilter = none")
-        tta = meta.tta if p.tta is None else p.tta
         t0 = time.perf_counter()
         dom = map_domain(traj, res, meta.band, model.stride())
         core = p.tile if p.tile is not None else auto_core(dom)
         with ctx.progress(len(tile_origins(dom, core)), "completing voxel tiles") as advance:
             pred = predict_tiles(model, keys, traj, res, meta.band, core=core, device=device, advance=advance,
-                                 bf16=p.bf16, tta=tta)
+                                 bf16=p.bf16)
         wall = time.perf_counter() - t0
         out = key_centres(meta.output_keys(pred, keys), res)
         return out, {
@@ -364,7 +354,6 @@ class CompleteStage(Stage):
             "resolution": res,
             "device": str(device),
             "bf16": p.bf16,
-            "tta": tta,
             "checkpoint": str(ckpt.relative_to(PROJECT_ROOT) if ckpt.is_relative_to(PROJECT_ROOT) else ckpt),
             "model_size": f"voxel U-Net {n_parameters(model):,} parameters",
             "n_parameters": n_parameters(model),

@@ -30,7 +30,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,7 +53,7 @@ from stages.complete.voxel_grid import (
     trajectory_band,
     voxel_features,
 )
-from stages.complete.voxel_net import VoxelNetConfig, VoxelUNet, n_parameters, symmetric_probability
+from stages.complete.voxel_net import VoxelNetConfig, VoxelUNet, n_parameters
 
 #: thresholds tried on the validation crops
 THRESHOLDS = tuple(round(float(t), 2) for t in np.arange(0.05, 0.951, 0.05))
@@ -232,10 +232,8 @@ def cfg_loss(logits: torch.Tensor, label: torch.Tensor, mask: torch.Tensor, cfg:
 
 @torch.no_grad()
 def validate(model: VoxelUNet, crops: list[Crop], cfg: VoxelTrainConfig,
-             device: torch.device | None = None, tta: int = 1) -> dict[str, Any]:
-    """Validation loss and voxel F1 / precision / recall at every threshold of :data:`THRESHOLDS`; ``tta``: the
-    probabilities averaged over that many lattice symmetries (:func:`voxel_net.symmetric_probability`; the loss
-    stays the network's own)."""
+             device: torch.device | None = None) -> dict[str, Any]:
+    """Validation loss and voxel F1 / precision / recall at every threshold of :data:`THRESHOLDS`."""
     device = device or torch.device("cpu")
     model.eval()
     tp = np.zeros(len(THRESHOLDS))
@@ -247,7 +245,7 @@ def validate(model: VoxelUNet, crops: list[Crop], cfg: VoxelTrainConfig,
         lab, mask = torch.from_numpy(c.label)[None].to(device), torch.from_numpy(c.mask)[None].to(device)
         logit = model(x)
         losses.append(float(cfg_loss(logit, lab, mask, cfg)))
-        prob = torch.sigmoid(logit) if tta == 1 else symmetric_probability(model, x, tta)
+        prob = torch.sigmoid(logit)
         p = prob[0].float().cpu().numpy()[c.mask > 0]
         y = c.label[c.mask > 0] > 0
         for i, t in enumerate(THRESHOLDS):
@@ -262,43 +260,6 @@ def validate(model: VoxelUNet, crops: list[Crop], cfg: VoxelTrainConfig,
     model.train()
     return {"val_loss": float(np.mean(losses)), "val_f1": float(f1[b]), "val_threshold": THRESHOLDS[b],
             "val_precision": float(prec[b]), "val_recall": float(rec[b]), "val_f1_by_threshold": f1.round(4).tolist()}
-
-
-#: the rule, written before any symmetry-averaged prediction was scored on a validation or test map:
-#: the training's own threshold rule (the highest validation-crop voxel F1) taken over the symmetry counts too
-TTA_RULE = ("the symmetry count n in (1, 2, 4, 8) and threshold t with the highest validation-crop voxel F1 of "
-            "the n-symmetry mean probability (ties: the smaller n); the gate is then decided anew (GATE_RULE)")
-
-
-def decide_tta(root: Path, checkpoint: Path, log: Callable[[str], None] = print) -> tuple[int, float]:
-    """:data:`TTA_RULE` on the checkpoint's validation crops (the validation scenes and crop settings it was
-    trained with; never a test scene); stores the symmetry count and its threshold, with the evidence, in the
-    checkpoint, and returns them."""
-    from sources.mapset import read_index
-    from stages.complete.maps import map_split
-    from stages.complete.voxel_checkpoint import load_voxel_checkpoint
-    from stages.complete.voxel_net import TTA_SIZES
-
-    model, meta = load_voxel_checkpoint(checkpoint)
-    cfg = VoxelTrainConfig(**{k: v for k, v in meta.train.get("config", {}).items()
-                              if k in VoxelTrainConfig.model_fields})
-    val_names = map_split(read_index(root)).val
-    scenes = [load_scene(root, s, meta.resolution, meta.band) for s in val_names]
-    crops = validation_crops(scenes, cfg, meta.band, model.stride())
-    results = {}
-    for n in TTA_SIZES:
-        t0 = time.perf_counter()
-        results[n] = validate(model, crops, cfg, tta=n)
-        log(f"{n} symmetries: validation-crop F1 {results[n]['val_f1']:.4f} at threshold "
-            f"{results[n]['val_threshold']} ({time.perf_counter() - t0:.0f} s)")
-    best = max(TTA_SIZES, key=lambda n: (round(results[n]["val_f1"], 6), -n))
-    meta.tta, meta.threshold = best, float(results[best]["val_threshold"])
-    meta.train["tta_decision"] = {
-        "rule": TTA_RULE, "tta": best, "threshold": meta.threshold, "val_scenes": val_names, "crops": len(crops),
-        "val_f1": {str(n): round(r["val_f1"], 4) for n, r in results.items()},
-        "val_threshold": {str(n): r["val_threshold"] for n, r in results.items()}}
-    save_voxel_checkpoint(checkpoint, model, meta, half=True)
-    return best, meta.threshold
 
 
 def lr_at(cfg: VoxelTrainConfig, elapsed: float) -> float:

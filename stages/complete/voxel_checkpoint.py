@@ -13,7 +13,6 @@ from core.errors import UserError
 from stages.complete.voxel_grid import CHANNELS, I64, Band
 from stages.complete.voxel_net import (
     MODEL_KIND,
-    TTA_SIZES,
     TilePrediction,
     VoxelNetConfig,
     VoxelUNet,
@@ -38,9 +37,6 @@ class VoxelMeta:
     train: dict[str, Any] = field(default_factory=dict)
     #: with ``union_radar``: only radar voxels whose predicted probability is at least this are added (0: all)
     union_gate: float = 0.0
-    #: lattice symmetries averaged at inference (``voxel_net.symmetric_probability``); the threshold and the gate
-    #: were chosen with this many (1: the network alone, older checkpoints)
-    tta: int = 1
 
     def output_keys(self, pred: TilePrediction, radar_keys: I64) -> I64:
         """The completed map this checkpoint stands for: its threshold, and the (pre-filtered) radar voxels
@@ -60,7 +56,6 @@ class VoxelMeta:
             "union_radar": json.dumps(bool(self.union_radar)),
             "train": json.dumps(self.train),
             "union_gate": repr(float(self.union_gate)),
-            "tta": str(int(self.tta)),
         }
 
     @classmethod
@@ -74,16 +69,17 @@ class VoxelMeta:
         if d.get("format_version") != VOXEL_FORMAT_VERSION:
             raise UserError(f"{where}: voxel checkpoint format version {d.get('format_version')} is not "
                             f"{VOXEL_FORMAT_VERSION}; retrain it with python -m stages.complete.train_voxel")
-        tta = d.get("tta", "1")
-        if tta not in {str(n) for n in TTA_SIZES}:
-            raise UserError(f"{where}: tta {tta!r} is not a symmetry count of the lattice {TTA_SIZES}")
+        if d.get("tta", "1") != "1":
+            raise UserError(f"{where}: its threshold was chosen on predictions averaged over {d['tta']} lattice "
+                            "symmetries, which this version does not compute; retrain it or decide its threshold "
+                            "anew")
         channels = tuple(json.loads(d["channels"]))
         if channels != CHANNELS:
             raise UserError(f"{where}: trained on channels {list(channels)}, this code computes {list(CHANNELS)}")
         return cls(VoxelNetConfig.from_dict(json.loads(d["model_config"])), float(d["resolution"]),
                    float(d["threshold"]), Band(**json.loads(d["band"])), channels,
                    bool(json.loads(d.get("union_radar", "false"))), json.loads(d.get("train", "{}")),
-                   float(d.get("union_gate", "0.0")), int(tta))
+                   float(d.get("union_gate", "0.0")))
 
 
 def checkpoint_kind(path: str | Path) -> str:

@@ -107,41 +107,6 @@ class VoxelUNet(nn.Module):
         return out
 
 
-#: the lattice's xy symmetries as (quarter turns about z, mirror in x), ordered so that the first 1, 2, 4 or 8
-#: form a group: the identity, the mirror, the half turn with and without it (Klein's four-group), then the
-#: quarter turns (the dihedral group of the square, the training augmentation of ``train_voxel.augment``)
-SYMMETRIES: tuple[tuple[int, bool], ...] = ((0, False), (0, True), (2, False), (2, True),
-                                            (1, False), (1, True), (3, False), (3, True))
-TTA_SIZES = (1, 2, 4, 8)
-
-
-def check_tta(tta: int) -> None:
-    """ValueError unless ``tta`` is a symmetry count of :data:`TTA_SIZES`."""
-    if tta not in TTA_SIZES:
-        raise ValueError(f"tta must be one of {TTA_SIZES} (symmetries of the lattice averaged), got {tta}")
-
-
-def symmetric_probability(model: VoxelUNet, x: torch.Tensor, tta: int = 1) -> torch.Tensor:
-    """Occupancy probability ``(B, X, Y, Z)`` of input ``x`` ``(B, C, X, Y, Z)``: the mean of the network's
-    sigmoid over the first ``tta`` of :data:`SYMMETRIES` (test-time augmentation), each output turned back
-    onto the input's lattice. Every input channel is invariant under these maps (occupancy, density, distance
-    to and height over the trajectory), so each term is a prediction of the same map. ``tta = 1``: the network
-    alone, bit for bit."""
-    check_tta(tta)
-    if tta == 1:
-        return torch.sigmoid(model(x))
-    total: torch.Tensor | None = None
-    for k, mirror in SYMMETRIES[:tta]:
-        xt = torch.flip(x, (2,)) if mirror else x
-        xt = torch.rot90(xt, k, (2, 3)).contiguous(memory_format=torch.channels_last_3d)
-        p = torch.rot90(torch.sigmoid(model(xt).float()), -k, (1, 2))
-        p = torch.flip(p, (1,)) if mirror else p
-        total = p if total is None else total + p
-        del xt
-    assert total is not None
-    return total / tta
-
-
 def n_parameters(model: nn.Module) -> int:
     return int(sum(p.numel() for p in model.parameters()))
 
@@ -237,7 +202,7 @@ def reuse_freed_memory(limit: int = 2**31 - 1) -> Iterator[None]:
 def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float, band: Band,
                   core: int | None = None, halo: int | None = None, device: str | torch.device = "cpu",
                   advance: Callable[[int], None] | None = None, origins: Sequence[tuple[int, int]] | None = None,
-                  bf16: bool = False, tta: int = 1) -> TilePrediction:
+                  bf16: bool = False) -> TilePrediction:
     """Occupancy probability of every band voxel of a map: one pass over the map's :class:`Domain` (zero
     padding at its faces), computed as xy tiles of ``core`` voxels (None: :func:`auto_core`), each with
     ``halo`` voxels of context cut at the domain's faces, and the whole z range of the domain.
@@ -247,10 +212,8 @@ def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float
     band voxel are skipped (their voxels are outside the pre-filter band and never output), and so are tiles
     with no radar voxel in core + halo (nothing to complete: no voxel output). ``origins`` restricts the run
     to some tiles (tests). ``bf16``: the network under bfloat16 autocast (1.7x faster on a CPU with AVX-512
-    BF16; probabilities move by up to about 0.01, so the completed map can change by a few voxels). ``tta``:
-    the mean over that many lattice symmetries (:func:`symmetric_probability`), tta times the network's cost.
+    BF16; probabilities move by up to about 0.01, so the completed map can change by a few voxels).
     """
-    check_tta(tta)
     s = model.stride()
     dom = map_domain(trajectory, res, band, s)
     core = core if core is not None else auto_core(dom)
@@ -288,7 +251,7 @@ def predict_tiles(model: VoxelUNet, radar_keys: I64, trajectory: F64, res: float
         t1 = time.perf_counter()
         x = torch.from_numpy(feats)[None].to(device).contiguous(memory_format=torch.channels_last_3d)
         with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bf16):
-            prob_t = symmetric_probability(model, x, tta)[0, cx, cy, :]
+            prob_t = torch.sigmoid(model(x))[0, cx, cy, :]
         prob = prob_t.float().cpu().numpy()
         del x, prob_t
         out.model_seconds += time.perf_counter() - t1
@@ -350,28 +313,3 @@ def completed_keys(pred: TilePrediction, threshold: float, radar_keys: I64 | Non
     if len(keys) == 0:
         return np.zeros((0, 3), np.int64)
     return np.unique(keys, axis=0)
-
-
-#: the 27 offsets of a voxel's 3 x 3 x 3 neighbourhood (itself included), in voxel units
-NEIGHBOURHOOD = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing="ij"), -1).reshape(-1, 3).astype(np.int64)
-
-
-def subvoxel_points(pred: TilePrediction, keys: I64, res: float, strength: float) -> F64:
-    """The completed voxels ``keys`` as points off the lattice (a diagnostic of the F-score): each voxel
-    centre moved ``strength`` of the way to the probability-weighted centroid of its 3 x 3 x 3 neighbourhood
-    (the voxel's sub-voxel surface estimate). The offset is below one voxel on every axis, so ``strength <=
-    0.5`` keeps each point within ``0.5 * sqrt(3) * res < res`` of its centre; ``strength = 0`` gives
-    :func:`stages.complete.voxel_grid.key_centres`.
-
-    On a lattice the F-score at ``d = res`` sees face neighbours exactly at ``d``; any move breaks those ties,
-    so the F at ``d`` measures the placement as much as the map (data/models/README.md)."""
-    if not 0.0 <= strength <= 1.0:
-        raise ValueError(f"strength must be within [0, 1], got {strength}")
-    keys = np.asarray(keys, np.int64).reshape(-1, 3)
-    if len(keys) == 0:
-        return np.zeros((0, 3))
-    w = probabilities_at(pred, (keys[None] + NEIGHBOURHOOD[:, None]).reshape(-1, 3)).reshape(len(NEIGHBOURHOOD), -1)
-    total = w.sum(axis=0, dtype=np.float64)
-    centroid = np.einsum("nk,nd->kd", w.astype(np.float64), NEIGHBOURHOOD.astype(np.float64))
-    offset = np.divide(centroid, total[:, None], out=np.zeros_like(centroid), where=total[:, None] > 0)
-    return np.round((keys + 0.5 + strength * offset) * res, 6)  # rounded as key_centres (the published files)

@@ -1,12 +1,12 @@
 """What each real-radar effect of the drifting twins does to the radar map, on RMap *train* scenes.
 
-Not part of ``make bench``. For each train scene named, the radar-only twin of :mod:`benchmarks.twins_tune_radar`
+For each train scene named, the radar-only twin of :mod:`experiments.twins_tune_radar`
 (walked at its ``WALK_SPEED``, seed 7, the map built as the voxel stage builds the twins') with the twins'
 tuned radar (``TWIN_RADAR``), then with each effect of ``data/twins/drift.toml``'s ``[radar]`` alone, then all
 of them (the drifting twins' radar): L/R, CD-l1, CD-l2, F@0.15 against the real ``lidar_filtered`` map, beside
 the authors' real radar map. The six twins' own scenes are refused (they only check).
 
-Usage: ``RMAP_ROOT=... python -m benchmarks.twins_radar_effects aspen_run9 [--max-seconds 40]``; prints Markdown.
+Usage: ``RMAP_ROOT=... python -m experiments.twins_radar_effects aspen_run9 [--max-seconds 40]``; prints Markdown.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.twins_tune_radar import TWIN_SCENES, WALK_SPEED, _metrics, radar_map
+from experiments.twins_tune_radar import TWIN_SCENES, WALK_SPEED, _metrics, radar_map
 
 COLUMNS = ("n_radar", "lr_ratio", "cd_l1", "cd_l2", "fscore_0.15")
 
@@ -44,7 +44,7 @@ def main(argv: list[str]) -> int:
     from simulator.twin import TwinParams, twin_world, variant_params
     from sources.mapset import read_map_set
 
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.twins_radar_effects", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m experiments.twins_radar_effects", description=__doc__.split("\n")[0])
     ap.add_argument("scenes", nargs="+")
     ap.add_argument("--variant", default="drift", help="twin variant whose [radar] effects are compared")
     ap.add_argument("--seed", type=int, default=7)

@@ -1,12 +1,12 @@
 """EKF-RIO drift on the (drifting) ColoRadar twins beside RICH-SLAM Table III's real RIO.
 
-Not part of ``make bench``. For each sequence named, after ``pipeline run ingest filter odometry --seq S``: the
+For each sequence named, after ``pipeline run ingest filter odometry --seq S``: the
 odometry stage's own drift against ground truth (``stats.drift`` of its manifest: the estimate anchored at
 the first ground-truth pose, no alignment) and the vertical drift (the odometry's z minus the ground truth's
 at the same stamps, both taken relative to their first matched pose: RMSE and final value), with the EKF's
 update counts. Table III's OPT-RIO and EKF-RIO (real ColoRadar) beside each twin.
 
-Usage: ``python -m benchmarks.twins_drift_odometry --runs-dir RUNS coloradar_1_twin_drift ...``; prints Markdown.
+Usage: ``python -m experiments.twins_drift_odometry --runs-dir RUNS coloradar_1_twin_drift ...``; prints Markdown.
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ def row(run: Path) -> dict[str, Any]:
 
 
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.twins_drift_odometry", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m experiments.twins_drift_odometry", description=__doc__)
     ap.add_argument("--runs-dir", type=Path, default=Path("runs"))
     ap.add_argument("seqs", nargs="+")
     a = ap.parse_args(argv)

@@ -1,4 +1,4 @@
-"""Does completion improve the simulated twins' radar maps? Not part of ``make bench``.
+"""Does completion improve the simulated twins' radar maps?
 
 For each twin run folder (``voxel/`` with ``radar_map``, ``lidar_map`` and ``map_trajectory``, and
 ``complete/completed_map`` of the default UpPoinTr completion; e.g. the ``trajectory=groundtruth`` point of
@@ -6,7 +6,7 @@ For each twin run folder (``voxel/`` with ``radar_map``, ``lidar_map`` and ``map
 the band-filtered radar map (as ``complete.model = voxel`` runs it), each scored against the lidar map with the
 evaluate stage's ``map_metrics`` at 0.15 m.
 
-Usage: ``python -m benchmarks.twins_completion RUNS/sweeps/sweep_radar_only/trajectory=groundtruth
+Usage: ``python -m experiments.twins_completion RUNS/sweeps/sweep_radar_only/trajectory=groundtruth
 [--checkpoint data/models/rmap_voxel.safetensors] [--out rows.json]``; prints a Markdown table.
 """
 

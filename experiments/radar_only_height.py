@@ -1,11 +1,11 @@
-"""The radar-only maps before and after a change of the odometry, not part of ``make bench``.
+"""The radar-only maps before and after a change of the odometry.
 
 Reads the ``sweep_metrics.parquet`` of two runs of ``pipeline sweep sweep_radar_only`` (or a sweep with the same
 points) on the same sequences, e.g. without and with the odometry's mount state and level prior, and gives, per
 sequence and trajectory, the completed map's CD-l2 over the one built along ground truth (the issue's 1.5x
 target), as a Markdown table and a bar chart (log scale, the target drawn).
 
-Usage: ``python -m benchmarks.radar_only_height BEFORE.parquet AFTER.parquet --labels before after
+Usage: ``python -m experiments.radar_only_height BEFORE.parquet AFTER.parquet --labels before after
 [--sources odometry rich_slam] [--out figure.png]``
 """
 

@@ -1,13 +1,13 @@
-"""Sim-to-real check of the radar model on the ColoRadar twins, not part of ``make bench``.
+"""Sim-to-real check of the radar model on the ColoRadar twins.
 
 For each twin named: its simulated radar OctoMap (the voxel stage's ``radar_map.parquet``, built along the
 twin's ground truth, after ``pipeline run voxel --seq <twin>``) and the authors' real radar map of the same
 scene, both measured against the same real ``lidar_filtered`` map: L/R (RMap Table I: lidar voxels over
 radar voxels), D-Dist percentiles and CD-l1 / CD-l2 (RMap Table III's input row), F-score at 0.15 m.
 
-Usage: ``RMAP_ROOT=... python -m benchmarks.twins_sim_to_real coloradar_1_twin [coloradar_5_twin ...]``
+Usage: ``RMAP_ROOT=... python -m experiments.twins_sim_to_real coloradar_1_twin [coloradar_5_twin ...]``
 (the runs are read from ``$RADAR_PIPELINE_RUNS`` or ``runs/``). Prints a Markdown table.
-``python -m benchmarks.twins_sim_to_real --figure twins.png``: the six twins' smoothed trajectories over
+``python -m experiments.twins_sim_to_real --figure twins.png``: the six twins' smoothed trajectories over
 their maps (top view, the map coloured by height), one figure.
 """
 

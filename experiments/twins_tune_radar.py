@@ -1,4 +1,4 @@
-"""Tune the twins' radar model on RMap's *train* scenes, not part of ``make bench``.
+"""Tune the twins' radar model on RMap's *train* scenes.
 
 For each train scene named, a twin (:func:`simulator.twin.twin_world`, the scene's ``lidar`` map, its recorded
 path) is simulated for its radar only and the radar OctoMap is built along the simulated ground truth the way
@@ -18,7 +18,7 @@ The pick (:func:`pick`): the trial with the smallest mean over the scenes of
 ``|log(L/R_sim / L/R_real)| + |log(CD-l2_sim / CD-l2_real)|`` (as sparse and as noisy as the real radar, in
 ratio terms). The twins' own scenes (RICH-SLAM's ColoRadar 1-6) are refused, so they only check.
 
-Usage: ``RMAP_ROOT=... python -m benchmarks.twins_tune_radar --out trials.csv arpg_lab_run2 aspen_run9 ...``
+Usage: ``RMAP_ROOT=... python -m experiments.twins_tune_radar --out trials.csv arpg_lab_run2 aspen_run9 ...``
 """
 
 from __future__ import annotations
@@ -136,7 +136,7 @@ def main(argv: list[str]) -> int:
     from simulator.twin import TwinParams, twin_world
     from sources.mapset import read_map_set
 
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.twins_tune_radar", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m experiments.twins_tune_radar", description=__doc__.split("\n")[0])
     ap.add_argument("scenes", nargs="*")
     ap.add_argument("--pick", type=Path, nargs="+", default=[], help="only pick from these trial CSVs: the best "
                     "trial among those run on every scene of the CSVs")
