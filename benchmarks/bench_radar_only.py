@@ -9,23 +9,11 @@ instead of the registered 60 s sequence.
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 from benchmarks.common import Result
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _cli(args: list[str], env: dict[str, str]) -> float:
-    t0 = time.perf_counter()
-    r = subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=ROOT, env=env, capture_output=True, text=True)
-    if r.returncode != 0:
-        raise RuntimeError(f"pipeline {' '.join(args)} failed ({r.returncode}): {r.stderr[-2000:]}")
-    return time.perf_counter() - t0
+from benchmarks.common import run_pipeline as _cli
 
 
 def run(quick: bool = False) -> list[Result]:
@@ -34,8 +22,7 @@ def run(quick: bool = False) -> list[Result]:
         env = {**os.environ, "RADAR_PIPELINE_CACHE": str(t / "cache")}
         if quick:
             bag = t / "demo15.bag"
-            subprocess.run([sys.executable, "-m", "pipeline", "simulate", "--world", "demo", "--out", str(bag),
-                            "--duration", "15", "--seed", "0"], cwd=ROOT, env=env, check=True, capture_output=True)
+            _cli(["simulate", "--world", "demo", "--out", str(bag), "--duration", "15", "--seed", "0"], env)
             src = ["--source", str(bag), "--seq", "demo15", "--set", "slam.n_particles=50"]
         else:
             src = ["--seq", "demo"]

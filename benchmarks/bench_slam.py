@@ -114,24 +114,20 @@ def _stage_real_time(quick: bool) -> list[Result]:
     (target: real time). The log is simulated and run to the odometry once, in a temporary store."""
     import json
     import os
-    import subprocess
-    import sys
     import tempfile
     from pathlib import Path
 
     import pyarrow.parquet as pq
 
-    root = Path(__file__).resolve().parents[1]
+    from benchmarks.common import run_pipeline
+
     methods = [("radar_graph", 5.0)] + ([] if quick else [("rich_slam", 1.0)])
     out: list[Result] = []
     with tempfile.TemporaryDirectory(prefix="bench_slam_stage_") as tmp:
         env = {**os.environ, "RADAR_PIPELINE_CACHE": str(Path(tmp) / "cache")}
 
         def cli(*args: str) -> None:
-            r = subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=root, env=env, capture_output=True,
-                               text=True)
-            if r.returncode != 0:
-                raise RuntimeError(f"pipeline {' '.join(args)} failed ({r.returncode}): {r.stderr[-2000:]}")
+            run_pipeline(list(args), env)
 
         runs = Path(tmp) / "runs"
         if quick:

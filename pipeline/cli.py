@@ -294,20 +294,16 @@ def params(stage: Annotated[str | None, typer.Argument(help="a stage name (defau
             raise UserError(f"unknown stage '{name}'{did_you_mean(name, registry)}")
     if seqs:
         from pipeline.config import effective_params
-        from pipeline.sequences import get_sequence, kind_defaults
+        from pipeline.sequences import get_sequence
 
         if len(seqs) != 1 or "," in seqs[0]:
             raise UserError("params --seq takes one sequence name")
         info = get_sequence(seqs[0])
-        overrides = parse_set(set_ or [], registry)
+        runner = Runner(info, default_runs_dir(), registry, wf, parse_set(set_ or [], registry), console=console)
         for name in names:
-            layers = [(f"workflow {wf.name}", wf.params.get(name, {})),
-                      (f"{info.kind} sequences (data/kinds.toml)", kind_defaults(info.kind).get(name, {})),
-                      (f"sequence {info.name} (data/sequences.toml)", info.params.get(name, {})),
-                      ("--set", overrides.get(name, {}))]
             rows = [[escape(f"{name}.{pname}"), escape(repr(value)), escape(layer),
                      escape(desc if full else brief(desc))]
-                    for pname, value, layer, desc in effective_params(registry[name], layers)]
+                    for pname, value, layer, desc in effective_params(registry[name], runner.param_layers(name))]
             columns = [Column("parameter", keep=True), Column("value"), Column("set by"), Column("description")]
             print_listing(out, f"{name} on {info.name}: {registry[name].description}", columns, rows)
         return

@@ -24,6 +24,7 @@ import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -104,10 +105,10 @@ class Runner:
         self._explicit: list[str] = []
         self._check_names()
 
-    @property
+    @cached_property
     def kind_params(self) -> Overrides:
-        """Parameters every sequence of this source kind starts from (``data/kinds.toml``), for the
-        stages of this registry."""
+        """Parameters every sequence of this source kind starts from (``data/kinds.toml``, read once per runner),
+        for the stages of this registry."""
         from pipeline.sequences import kind_defaults
 
         return {k: v for k, v in kind_defaults(self.seq.kind).items() if k in self.registry}
@@ -130,15 +131,19 @@ class Runner:
                 raise UserError(f"workflow '{self.workflow.name}': unknown stage '{stage}'")
 
     # -- parameters and keys ------------------------------------------------------------------------------
+    def param_layers(self, name: str) -> list[tuple[str, Mapping[str, Any]]]:
+        """Stage ``name``'s parameter layers above its defaults, later ones winning: the workflow, the sequence
+        kind (``data/kinds.toml``), the sequence (``data/sequences.toml``), ``--set``."""
+        return [
+            (f"workflow '{self.workflow.name}'", self.workflow.params.get(name, {})),
+            (f"{self.seq.kind} sequences", self.kind_params.get(name, {})),
+            (f"sequence '{self.seq.name}'", self.seq.params.get(name, {})),
+            ("--set", self.overrides.get(name, {})),
+        ]
+
     def params(self, name: str) -> StageParams:
         if name not in self._params:
-            layers = [
-                (f"workflow '{self.workflow.name}'", self.workflow.params.get(name, {})),
-                (f"{self.seq.kind} sequences", self.kind_params.get(name, {})),
-                (f"sequence '{self.seq.name}'", self.seq.params.get(name, {})),
-                ("--set", self.overrides.get(name, {})),
-            ]
-            self._params[name] = build_params(self.registry[name], layers)
+            self._params[name] = build_params(self.registry[name], self.param_layers(name))
         return self._params[name]
 
     def inputs_of(self, name: str) -> list[str]:

@@ -202,6 +202,7 @@ def loop_closures(poses: F64, clouds: list[F64], model: GraphParams,
     s = travelled(poses)
     out: list[Edge] = []
     half = max(1, model.local_keyframes // 2)
+    matcher = matcher_of(model)
     last_closed = -(10**9)
     K = len(poses)
     for k in range(K):
@@ -219,7 +220,7 @@ def loop_closures(poses: F64, clouds: list[F64], model: GraphParams,
         if len(q) < MIN_LOOP_POINTS or len(ref) < MIN_LOOP_POINTS:
             continue
         prior = None if odometry is None else chain_prior(odometry, j, k, model.bias_sigma0)
-        m = match(ref, q, between(poses[j], poses[k]), matcher_of(model), model.loop_radius, model.loop_search_yaw,
+        m = match(ref, q, between(poses[j], poses[k]), matcher, model.loop_radius, model.loop_search_yaw,
                   prior_cov=prior)
         if m.inliers < model.loop_min_inliers:
             continue

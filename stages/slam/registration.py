@@ -107,11 +107,11 @@ class Match:
     n_points: int
 
 
-def log_prior(offsets: F64, prior_cov: F64 | None) -> F64:
-    """``-1/2 d^T S^-1 d`` of pose offsets ``(..., 3)`` from the guess under the prior covariance ``S``; 0 without."""
-    if prior_cov is None:
+def log_prior(offsets: F64, info: F64 | None) -> F64:
+    """``-1/2 d^T S^-1 d`` of pose offsets ``(..., 3)`` from the guess, ``info = S^-1`` the prior's information
+    matrix; 0 without a prior."""
+    if info is None:
         return np.zeros(offsets.shape[:-1])
-    info = np.linalg.inv(prior_cov)
     return -0.5 * np.einsum("...i,ij,...j->...", offsets, info, offsets)
 
 
@@ -150,7 +150,8 @@ def match(reference: F64, query: F64, guess: npt.ArrayLike, model: MatcherModel,
     yaws = guess[2] + coarse_step * np.arange(-n_yaw, n_yaw + 1)
     half = int(np.ceil(search_xy / coarse.resolution))
     sc, offs = _scores(coarse, q, yaws, guess[:2], half)
-    rank = sc / model.temperature + log_prior(_grid_offsets(yaws, np.stack([offs, offs]), guess), prior_cov)
+    info = None if prior_cov is None else np.linalg.inv(prior_cov)
+    rank = sc / model.temperature + log_prior(_grid_offsets(yaws, np.stack([offs, offs]), guess), info)
     flat = np.argsort(rank.ravel())[::-1][: model.candidates]
     best_score = -np.inf
     best: tuple[F64, F64, F64, F64] | None = None
@@ -161,7 +162,7 @@ def match(reference: F64, query: F64, guess: npt.ArrayLike, model: MatcherModel,
         fs, foffs = _scores(field, q, fy, centre, f)
         fr = fs / model.temperature + log_prior(
             _grid_offsets(fy, np.stack([centre[0] - guess[0] + foffs, centre[1] - guess[1] + foffs]), guess),
-            prior_cov)
+            info)
         m = float(fr.max())
         if m > best_score:
             best_score, best = m, (fr, fs, fy, centre + np.stack(np.meshgrid(foffs, foffs, indexing="ij"), -1))
