@@ -193,7 +193,7 @@ def _radar_jump(lab: Lab) -> None:
     from simulator import log_faults, rig
 
     p = lab.bad_log("radar_jump.bag", lambda s, d: log_faults.clock_jump(s, d, 2.0, 7200.0, [rig.RADAR_TOPIC]))
-    lab.expect(_src(lab, p, stage="odometry"), 2, "no radar points for 7200", "ingest.max_gap_s")
+    lab.expect(_src(lab, p, stage="odometry"), 2, "no radar points for 7200", "ingest.clock.max_gap_s")
 
 
 @probe("clock: every stream pauses 2 h")
@@ -201,7 +201,7 @@ def _pause(lab: Lab) -> None:
     from simulator import log_faults
 
     p = lab.bad_log("pause.bag", lambda s, d: log_faults.pause_all(s, d, 2.0, 7200.0))
-    lab.expect(_src(lab, p, stage="odometry"), 2, "7200", "ingest.max_gap_s")
+    lab.expect(_src(lab, p, stage="odometry"), 2, "7200", "ingest.clock.max_gap_s")
 
 
 @probe("clock: IMU jumps +2 h, radar does not")
@@ -214,7 +214,7 @@ def _imu_jump(lab: Lab) -> None:
 
 @probe("log: a radar topic that is not in the log")
 def _wrong_topic(lab: Lab) -> None:
-    lab.expect(_src(lab, lab.bag, "--set", "ingest.radar_topic=/nope"), 2, "/nope")
+    lab.expect(_src(lab, lab.bag, "--set", "ingest.topics.radar=/nope"), 2, "/nope")
 
 
 @probe("profile: unknown dataset profile")

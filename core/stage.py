@@ -189,6 +189,10 @@ class Stage(ABC):
         """Upstream stages for these parameters (override when a parameter picks an input)."""
         return self.inputs
 
+    def optional_input_stages(self, params: StageParams) -> tuple[str, ...]:
+        """Stages used when they can run for the sequence, for these parameters."""
+        return self.optional_inputs
+
     def key_material(self, seq: SequenceInfo, params: StageParams) -> dict[str, Any]:
         """Extra values that enter the cache key (e.g. the fingerprint of a source bag)."""
         return {}

@@ -144,44 +144,19 @@ def run_table(root: Path, split: str, checkpoint: Path | None, band: Band, core:
     return out
 
 
-#: the rule, fixed before training ended: unite the model's voxels with the pre-filtered radar map when, on
-#: the validation scenes, the union's mean CD-l2 is lower and its mean paper-exact F at most 0.01 lower
-UNION_RULE = ("union iff on the validation scenes mean CD-l2 (union) < mean CD-l2 (model alone) and mean "
-              "paper-exact F (union) >= mean F (model alone) - 0.01")
-
-
 def _passes_union_rule(union: dict[str, float], alone: dict[str, float]) -> bool:
-    """:data:`UNION_RULE`'s test of one union's Overall row against the model alone's."""
+    """:data:`GATE_RULE`'s test of one union's Overall row against the model alone's: mean CD-l2 lower and mean
+    paper-exact F at most 0.01 lower."""
     return bool(union["cd_l2"] < alone["cd_l2"] and union["fscore_0.15"] >= alone["fscore_0.15"] - 0.01)
-
-
-def decide_union(table: dict[str, Any]) -> bool:
-    """:data:`UNION_RULE` on a validation table of :func:`run_table`."""
-    if table["split"] != "val":
-        raise ValueError("the union is decided on the validation scenes only")
-    return _passes_union_rule(table["overall"]["voxel + prefiltered radar"], table["overall"]["voxel"])
-
-
-def write_union(checkpoint: Path, table: dict[str, Any]) -> bool:
-    """Decide the union on ``table`` (validation) and store it, with the evidence, in the checkpoint."""
-    from stages.complete.voxel_checkpoint import load_voxel_checkpoint, save_voxel_checkpoint
-
-    union = decide_union(table)
-    model, meta = load_voxel_checkpoint(checkpoint)
-    meta.union_radar = union
-    meta.train["union_decision"] = {
-        "rule": UNION_RULE, "union": union, "val_scenes": table["scenes"],
-        "overall": {r: {k: round(v, 4) for k, v in table["overall"][r].items()}
-                    for r in ("voxel", "voxel + prefiltered radar")}}
-    save_voxel_checkpoint(checkpoint, model, meta, half=True)
-    return union
 
 
 #: the gates tried by :data:`GATE_RULE`: 0 (the plain union), 0.01 to 0.04 (where CD-l2 changes fastest on the
 #: validation scenes), then 0.05 to 0.5 (the shipped threshold) in steps of 0.05
 GATES = (0.0, 0.01, 0.02, 0.03, 0.04, *(round(0.05 * i, 2) for i in range(1, 11)))
-#: the rule, written before any gated union was scored on a test scene: the union rule above over a
-#: family of unions. Of the gates that pass it, the lowest (most radar voxels kept, for CD-l2); gate 0 is UNION_RULE
+#: the rule, written before any gated union was scored on a test scene: one test of a union against the model
+#: alone (:func:`_passes_union_rule`) over a
+#: family of unions. Of the gates that pass it, the lowest (most radar voxels kept, for CD-l2); gate 0 is the
+#: plain union
 GATE_RULE = ("the lowest gate g (0, 0.01, ..., 0.04, 0.05, 0.10, ..., the threshold) whose union (model voxels + "
              "pre-filtered radar voxels "
              "with predicted probability >= g) has, on the validation scenes, mean CD-l2 < the model alone's and "
@@ -252,8 +227,6 @@ def main(argv: list[str] | None = None) -> int:
                     "24 M voxels")
     ap.add_argument("--scenes", default=None, help="comma-separated subset of the split's scenes")
     ap.add_argument("--out", type=Path, default=None, help="write <out>.json and <out>.md")
-    ap.add_argument("--decide-union", action="store_true", help="--split val: apply UNION_RULE and store the "
-                    "decision in the checkpoint")
     ap.add_argument("--gates", action="store_true", help="also score the gated unions of GATES (up to the threshold)")
     ap.add_argument("--decide-gate", action="store_true", help="--split val: score every gate, apply GATE_RULE and "
                     "store the gate in the checkpoint")
@@ -282,10 +255,6 @@ def main(argv: list[str] | None = None) -> int:
         table["threads"] = torch.get_num_threads()
     md = to_markdown(table)
     print(md)
-    if args.decide_union and ckpt is not None:
-        if args.split != "val" or args.scenes:
-            raise SystemExit("error: --decide-union needs --split val over all validation scenes")
-        print(f"\nunion with the pre-filtered radar: {write_union(ckpt, table)} ({UNION_RULE})")
     if args.decide_gate and ckpt is not None:
         if args.split != "val" or args.scenes:
             raise SystemExit("error: --decide-gate needs --split val over all validation scenes")

@@ -2,7 +2,7 @@
 
 For each train scene named, a twin (:func:`simulator.twin.twin_world`, the scene's ``lidar`` map, its recorded
 path) is simulated for its radar only and the radar OctoMap is built along the simulated ground truth the way
-the voxel stage builds it for the twins (``voxel.radar_prob_miss = 0.5``: every fan voxel holding a return is
+the voxel stage builds it for the twins (``voxel.occupancy.radar_prob_miss = 0.5``: every fan voxel holding a return is
 occupied; :func:`radar_map`), then measured against the scene's real ``lidar_filtered`` map beside the
 authors' real radar map: L/R, CD-l2, F@0.15, D-Dist p50 / p90 (:func:`core.map_metrics.map_metrics`).
 

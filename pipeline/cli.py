@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shlex
 import subprocess
@@ -458,15 +459,19 @@ def report(
 
 @app.command()
 def train(
+    model: Annotated[str, typer.Option("--model", help="uppointr (the paper's patch network, on --seqs or --maps) "
+                                       "or voxel (the voxel U-Net, on --maps)")] = "uppointr",
     seqs_: Annotated[list[str] | None, typer.Option("--seqs", "-s", help="sequences for the patch pairs: a,b,... "
                                                     "or globs (or --maps); repeat it for more")] = None,
     test_seqs_: Annotated[list[str] | None, typer.Option(
         "--test-seqs", help="held-out sequences (not trained on; their patch CD is logged per epoch); 'none' for no "
         "held-out set; default: RMap's split of --seqs by run index; repeat it for more")] = None,
     size: Annotated[str, typer.Option("--size", help="model size: small (CPU) or paper")] = "small",
-    epochs: Annotated[int, typer.Option("--epochs", help="epochs (paper: 100)")] = 100,
-    batch_size: Annotated[int, typer.Option("--batch-size", help="patches per step (paper: 16)")] = 16,
-    lr: Annotated[float, typer.Option("--lr", help="AdamW initial learning rate (paper: 1e-5)")] = 1e-5,
+    epochs: Annotated[int, typer.Option("--epochs", help="uppointr: epochs (paper: 100)")] = 100,
+    batch_size: Annotated[int | None, typer.Option("--batch-size", help="patches per step (uppointr; paper: 16) or "
+                                                   "crops per step (voxel: 2)")] = None,
+    lr: Annotated[float | None, typer.Option("--lr", help="AdamW initial learning rate (uppointr; paper: 1e-5; "
+                                             "voxel: 1e-3)")] = None,
     weight_decay: Annotated[float, typer.Option("--weight-decay", help="AdamW weight decay (paper: 5e-5)")] = 5e-5,
     lr_decay: Annotated[float, typer.Option("--lr-decay", help="lr factor every --decay-every epochs")] = 0.9,
     decay_every: Annotated[int, typer.Option("--decay-every", help="epochs between lr decays (paper: 20)")] = 20,
@@ -477,10 +482,12 @@ def train(
     seed: Annotated[int, typer.Option("--seed", help="seed of weights, batches, resampling, augmentation")] = 0,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda or auto (cuda when present)")] = "auto",
     threads: Annotated[int | None, typer.Option("--threads", help="torch CPU threads")] = None,
-    time_limit: Annotated[float | None, typer.Option("--time-limit", help="stop after the epoch that passes "
-                                                     "this many seconds")] = None,
+    time_limit: Annotated[float | None, typer.Option("--time-limit", help="uppointr: stop after the epoch that "
+                                                     "passes this many seconds; voxel: the training budget and the "
+                                                     "cosine schedule's length (default 3600)")] = None,
     out_path: Annotated[Path | None, typer.Option("--out", help="checkpoint (.safetensors or .pt); default "
-                                                  "<runs>/models/rmap_<size>.safetensors")] = None,
+                                                  "<runs>/models/rmap_<size>.safetensors (rmap_voxel for voxel)")
+                        ] = None,
     half: Annotated[bool, typer.Option("--half", help="store the weights as float16")] = False,
     cached_only: Annotated[bool, typer.Option("--cached-only", help="train on the finished patches runs as they "
                                               "are, without bringing them up to date")] = False,
@@ -501,11 +508,23 @@ def train(
     resume: Annotated[bool, typer.Option("--resume", help="continue the run saved in --state")] = False,
     state: Annotated[Path | None, typer.Option("--state", help="resumable training state, written every epoch "
                                                "(default <out>.state.pt)")] = None,
+    option: Annotated[list[str] | None, typer.Option("--option", "-o", help="voxel: a training setting KEY=VALUE "
+                                                     "(jitter, coverage_weight, widths, crop_xy, val_every, workers, "
+                                                     "...); repeat it for more")] = None,
     runs_dir: RunsOpt = None,
     workflow: WorkflowOpt = "default",
 ) -> None:
-    """Train the completion network (RMap Sec. III-D) on the patches of --seqs or a map set (--maps); writes a
-    checkpoint, its curve and history every epoch."""
+    """Train a completion network (RMap Sec. III-D): UpPoinTr on the patches of --seqs or a map set (--maps), or
+    the voxel U-Net on a map set's train scenes; writes a checkpoint, its curve and history as it goes
+    (resumable with --resume)."""
+    if model not in ("uppointr", "voxel"):
+        raise UserError(f"--model {model}: choose uppointr or voxel")
+    if model == "voxel":
+        _train_voxel(maps, out_path, runs_dir, option or [], time_limit=time_limit, seed=seed,
+                     batch_size=batch_size, lr=lr, device=device, threads=threads, resume=resume, init=init)
+        return
+    if option:
+        raise UserError("--option sets the voxel model's training; for uppointr use the named options")
     from pipeline.train import TrainRequest, run_training
 
     seqs, test_seqs = seq_spec(seqs_), seq_spec(test_seqs_)
@@ -516,7 +535,8 @@ def train(
         seqs=seqs, test_seqs=test_seqs, runs_dir=runs, registry=registry, workflow=load_workflow(workflow),
         overrides=parse_set(set_ or [], registry), train_overrides=parse_set(train_set or [], registry),
         out=out_path or runs / "models" / f"rmap_{size}.safetensors",
-        train_kwargs=dict(size=size, epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
+        train_kwargs=dict(size=size, epochs=epochs, batch_size=batch_size or 16, lr=lr or 1e-5,
+                          weight_decay=weight_decay,
                           lr_decay=lr_decay, decay_every=decay_every, loss=loss, augment=augment, seed=seed,
                           crop_target=crop, patches_per_epoch=patches_per_epoch, init=init,
                           device=device, time_limit_s=time_limit),
@@ -526,6 +546,25 @@ def train(
     summary = run_training(req, console)
     for key in ("checkpoint", "curve", "history"):
         out.print(summary[key])
+
+
+def _train_voxel(maps: Path | None, out_path: Path | None, runs_dir: Path | None, options: list[str],
+                 **given: Any) -> None:
+    from pipeline.train import VoxelTrainRequest, parse_options, run_voxel_training
+
+    if maps is None:
+        raise UserError("pipeline train --model voxel: give --maps (a map set: index.json + "
+                        "<scene>/{radar,lidar_filtered}.parquet, e.g. ../shared/data/coloradar_maps)")
+    config = parse_options(options)
+    for key in ("time_limit", "seed", "batch_size", "lr"):
+        if given[key] is not None and key not in config:
+            config[key] = given[key]
+    out_file = out_path or _runs_dir(runs_dir, write=True) / "models" / "rmap_voxel.safetensors"
+    init = Path(given["init"]) if given["init"] else None
+    req = VoxelTrainRequest(maps=maps, out=out_file, config=config, device=given["device"],
+                            threads=given["threads"], resume=given["resume"], init=init)
+    summary = run_voxel_training(req, console)
+    out.print(json.dumps(summary))
 
 
 app.command("sweep")(sweep_command)

@@ -36,10 +36,10 @@ HEADER = """\
 #   [frames]         frame names, for streams whose messages carry an empty header.frame_id
 #   [extrinsics.*]   the mounting base <- sensor (translation m, quaternion x y z w) when the log has no tf;
 #                    without one a sensor is assumed at the base, with a warning
-# Clocks need nothing here: ingest.time_source=auto lines up zero, constant or foreign header stamps and
-# says what it did (--set ingest.time_source=header|record to choose yourself).
-# Single values can also be given per run: --set ingest.radar_extrinsic=[tx,ty,tz,qx,qy,qz,qw],
-# --set ingest.radar_frame=NAME, --set ingest.radar_topic=TOPIC (see `pipeline params ingest`).
+# Clocks need nothing here: ingest.clock.time_source=auto lines up zero, constant or foreign header stamps and
+# says what it did (--set ingest.clock.time_source=header|record to choose yourself).
+# Single values can also be given per run: --set ingest.frames.radar_extrinsic=[tx,ty,tz,qx,qy,qz,qw],
+# --set ingest.frames.radar=NAME, --set ingest.topics.radar=TOPIC (see `pipeline params ingest`).
 
 """
 

@@ -148,8 +148,9 @@ class Runner:
 
     def inputs_of(self, name: str) -> list[str]:
         stage = self.registry[name]
-        required = list(stage.input_stages(self.params(name)))
-        optional = [s for s in stage.optional_inputs if s in self.registry and self.available(s)
+        params = self.params(name)
+        required = list(stage.input_stages(params))
+        optional = [s for s in stage.optional_input_stages(params) if s in self.registry and self.available(s)
                     and s not in required and self.skipped(s) is None]
         return required + optional
 
@@ -201,7 +202,7 @@ class Runner:
         sequence (it is not skipped for it) but that cannot run on this installation."""
         out = []
         for name in plan:
-            for dep in self.registry[name].optional_inputs:
+            for dep in self.registry[name].optional_input_stages(self.params(name)):
                 if dep not in self.registry or self.available(dep) or self.skipped(dep) is not None:
                     continue
                 out.append((name, dep, self.registry[dep].unavailable_reason() or "unavailable"))

@@ -29,6 +29,7 @@ import typer
 from typer.exceptions import TyperException
 
 from core.errors import UserError
+from core.stage import flatten_params
 from pipeline.config import Overrides, Workflow, check_param_names, load_workflow, merge_overrides
 
 SWEEPS_DIR = "sweeps"
@@ -57,9 +58,9 @@ def flatten_sweep(sweep: Mapping[str, Any], prefix: str = "") -> dict[str, list[
             continue
         if "." not in name and isinstance(value, list) and value and all(isinstance(v, Mapping) for v in value):
             # stage = [{param = value, ...}, ...]: listed combinations of one stage's parameters
-            if any(not v or any(isinstance(x, Mapping) for x in v.values()) for v in value):
+            if any(not flatten_params(v) for v in value):
                 raise UserError(f"[sweep] {name}: each entry must be a non-empty table of parameter = value")
-            out[name] = [dict(v) for v in value]
+            out[name] = [flatten_params(v) for v in value]  # a group's members as "group.param"
             continue
         if "." not in name:
             raise UserError(f"[sweep] {name}: expected 'stage.param' (or 'stage.group.param') = [values]")

@@ -303,3 +303,62 @@ def _map_validator(val_data: dict[str, Any], device: Any) -> Any:
         return {f"map_{k}": v for k, v in mean_rows(rows).items()}
 
     return validate
+
+
+@dataclass
+class VoxelTrainRequest:
+    """``pipeline train --model voxel``: the voxel U-Net on a published map set's train scenes."""
+
+    maps: Path
+    out: Path
+    #: VoxelTrainConfig fields (time_limit, seed, batch_size, lr, jitter, coverage_weight, ...)
+    config: dict[str, Any]
+    device: str = "auto"
+    threads: int | None = None
+    resume: bool = False
+    init: Path | None = None
+
+
+def parse_options(options: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` pairs (VALUE as JSON, else a string; ``a,b,c`` of integers as a tuple)."""
+    out: dict[str, Any] = {}
+    for item in options:
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            raise UserError(f"--option {item!r}: expected KEY=VALUE, e.g. --option jitter=4.5")
+        try:
+            value: Any = json.loads(raw)
+        except json.JSONDecodeError:
+            value = tuple(int(v) for v in raw.split(",")) if raw.replace(",", "").isdigit() else raw
+        out[key.strip().replace("-", "_")] = value
+    return out
+
+
+def run_voxel_training(req: VoxelTrainRequest, console: Console) -> dict[str, Any]:
+    """Validate the settings, train (resumable), return the summary of :func:`train_voxel`."""
+    import torch
+    from pydantic import ValidationError
+
+    from stages.complete.train_voxel import VoxelTrainConfig, train_voxel
+    from stages.complete.voxel_grid import Band
+
+    unknown = sorted(set(req.config) - set(VoxelTrainConfig.model_fields))
+    if unknown:
+        raise UserError(f"--option {unknown[0]}: not a voxel training setting; choose from "
+                        f"{', '.join(VoxelTrainConfig.model_fields)}")
+    try:
+        cfg = VoxelTrainConfig(**req.config)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise UserError(f"--option {'.'.join(map(str, err['loc']))}: {err['msg']}") from None
+    device = req.device
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError(f"--device {device}: torch sees no CUDA device here; use --device cpu")
+    if not (req.maps / "index.json").is_file():
+        raise UserError(f"--maps {req.maps}: no index.json there; give a map set folder "
+                        "(index.json + <scene>/{radar,lidar_filtered}.parquet)")
+    torch.set_num_threads(req.threads or 1)
+    req.out.parent.mkdir(parents=True, exist_ok=True)
+    return train_voxel(req.maps, req.out, cfg, Band(), req.resume, log=console.log, device=device, init=req.init)

@@ -65,7 +65,7 @@ def _complete(root: Path, name: str, seq: SequenceInfo = SEQ, **params: Any) -> 
 
     out = root / name
     out.mkdir()
-    p = CompleteParams(batch_size=2, threads=1, **params)
+    p = CompleteParams(runtime={"batch_size": 2, "threads": 1}, **params)
     ctx = StageContext(stage="complete", seq=seq, params=p, out_dir=out,
                        input_dirs={n: root / n for n in STAGE.input_stages(p)}, console=Console(quiet=True))
     STAGE.run(ctx)

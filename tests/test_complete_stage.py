@@ -165,7 +165,8 @@ def test_stage_with_tiny_checkpoint(tmp_path: Path) -> None:
                       encoder_depth=1, decoder_depth=1, num_heads=4, graph_k=4, global_dim=64, hidden_dim=64,
                       up_dim=16, up_k=4)
     ckpt = save_checkpoint(tmp_path / "tiny.safetensors", UpPoinTr(cfg), CheckpointMeta(cfg, 3.0, {"config": {}}))
-    ctx = _context(tmp_path, CompleteParams(checkpoint=str(ckpt), batch_size=2), voxel_params={"resolution": 0.2})
+    ctx = _context(tmp_path, CompleteParams(checkpoint=str(ckpt), runtime={"batch_size": 2}),
+                   voxel_params={"resolution": 0.2})
     _write_patches(tmp_path / "patches" / "patches.parquet", n=3, n_radar=300)  # resampled to 256
     STAGE.run(ctx)
     ctx.close()

@@ -69,9 +69,9 @@ def test_voxel_model_writes_lattice_voxels_inside_the_band(tmp_path: Path) -> No
     from stages.complete.voxel_grid import Band, in_band, lattice_keys
 
     _maps(tmp_path)
-    params = CompleteParams(model="voxel", checkpoint=str(_ckpt(tmp_path)), tile=16)
+    params = CompleteParams(model="voxel", checkpoint=str(_ckpt(tmp_path)), runtime={"tile": 16})
     assert STAGE.input_stages(params) == ("patches", "voxel")  # models = auto may add UpPoinTr
-    params = CompleteParams(model="voxel", models=["voxel"], checkpoint=str(_ckpt(tmp_path)), tile=16)
+    params = CompleteParams(model="voxel", models=["voxel"], checkpoint=str(_ckpt(tmp_path)), runtime={"tile": 16})
     assert STAGE.input_stages(params) == ("voxel",)
     ctx = _context(tmp_path, params)
     STAGE.run(ctx)
@@ -86,7 +86,7 @@ def test_voxel_model_writes_lattice_voxels_inside_the_band(tmp_path: Path) -> No
 
 
 def test_voxel_bf16_option_reaches_the_network(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """``complete.bf16`` runs the network under bfloat16 autocast: passed to ``predict_tiles``, recorded in the
+    """``complete.runtime.bf16`` runs the network under bfloat16 autocast: passed to ``predict_tiles``, recorded in the
     stats, and the map it writes is the float32 map to within a few voxels (probabilities near the threshold
     may cross it)."""
     from stages.complete import voxel_net
@@ -103,7 +103,8 @@ def test_voxel_bf16_option_reaches_the_network(tmp_path: Path, monkeypatch: pyte
     _maps(tmp_path)
     maps = {}
     for bf16 in (False, True):
-        params = CompleteParams(model="voxel", models=["voxel"], checkpoint=str(_ckpt(tmp_path)), tile=16, bf16=bf16)
+        params = CompleteParams(model="voxel", models=["voxel"], checkpoint=str(_ckpt(tmp_path)),
+                                runtime={"tile": 16, "bf16": bf16})
         ctx = _context(tmp_path, params)
         STAGE.run(ctx)
         ctx.close()
@@ -131,7 +132,7 @@ def test_voxel_bad_inputs_are_one_line_errors_and_write_nothing(tmp_path: Path, 
     _maps(tmp_path, radar=np.zeros((0, 3)) if case == "empty" else None,
           lidar_shift=0.05 if case == "off_lattice" else 0.0, trajectory=case != "no_trajectory",
           resolution=0.2 if case == "resolution" else RES)
-    ctx = _context(tmp_path, CompleteParams(model="voxel", checkpoint=str(ckpt), tile=16))
+    ctx = _context(tmp_path, CompleteParams(model="voxel", checkpoint=str(ckpt), runtime={"tile": 16}))
     with pytest.raises(UserError, match=match) as err:
         STAGE.run(ctx)
     ctx.close()

@@ -256,7 +256,7 @@ def test_a_clock_jump_or_pause_is_an_error_with_its_times(short_bag: Path, tmp_p
     r = cli("run", "all", "--source", str(bad), "--runs-dir", str(tmp_path / "runs"))
     assert r.returncode == 2, r.stderr[-3000:]
     line = r.stderr.strip().splitlines()[-1]
-    assert "no radar points for 7200" in line and "from 3.0 s" in line and "ingest.max_gap_s" in line, line
+    assert "no radar points for 7200" in line and "from 3.0 s" in line and "ingest.clock.max_gap_s" in line, line
     assert not (tmp_path / "runs" / fault / "ingest").exists()  # nothing half-written, nothing downstream
 
 

@@ -151,11 +151,11 @@ def test_header_time_source_refuses_clocks_that_never_overlap(bag: Path, tmp_pat
     pattern = (r"radar and IMU clocks never overlap \(radar 337000\.\d-3370\d\d\.\d s, IMU 0\.0-4\d\.\d s"
                r".*time_source=auto")
     with pytest.raises(UserError, match=pattern):
-        _run(bag, tmp_path / "runs", ["ingest"], time_source="header")
+        _run(bag, tmp_path / "runs", ["ingest"], clock={"time_source": "header"})
 
 
 def test_record_time_source_uses_the_record_time_everywhere(bag: Path, tmp_path: Path) -> None:
-    st = _stats(_run(bag, tmp_path / "runs", ["ingest"], time_source="record") / "ingest")
+    st = _stats(_run(bag, tmp_path / "runs", ["ingest"], clock={"time_source": "record"}) / "ingest")
     assert {c["use"] for c in st["clock"]["streams"].values()} == {"record"}
     assert any("record time" in w for w in st["warnings"])
 

@@ -113,7 +113,7 @@ def test_missing_topic_lists_what_the_log_has(tmp_path: Path) -> None:
     for topic in ("/radar/points", LIDAR_TOPIC, IMU_TOPIC, GT_TOPIC):
         assert topic in msg
     # mapping the topic fixes it
-    out = ingest(bag, tmp_path / "runs2", radar_topic="/radar/points")
+    out = ingest(bag, tmp_path / "runs2", topics={"radar": "/radar/points"})
     assert read_artifact(out / "radar.parquet", "radar").num_rows == sum(len(c["x"]) for _, c in make_scene().radar)
 
 
@@ -179,7 +179,7 @@ def test_time_going_backwards_is_reported_and_sorted(tmp_path: Path) -> None:
     sc.radar[2], sc.radar[3] = (t3, c2), (t2, c3)
     sc.radar[6] = (sc.radar[0][0] - 10, sc.radar[6][1])
     sc.imu_t[10], sc.imu_t[11] = sc.imu_t[11], sc.imu_t[10]
-    out = ingest(write_log(tmp_path / "log", sc, "folder"), tmp_path / "runs", reorder_window=2)
+    out = ingest(write_log(tmp_path / "log", sc, "folder"), tmp_path / "runs", clock={"reorder_window": 2})
     stats = manifest(out)["stats"]
     assert stats["streams"]["radar"]["backwards"] == 2
     assert stats["streams"]["radar"]["out_of_order_dropped"] == 1
@@ -197,15 +197,15 @@ def test_radar_latency_moves_only_the_radar_stamps(tmp_path: Path) -> None:
     sc = make_scene()
     log = write_log(tmp_path / "log", sc, "mcap")
     plain = ingest(log, tmp_path / "runs_a")
-    late = ingest(log, tmp_path / "runs_b", radar_latency_s=0.03)
+    late = ingest(log, tmp_path / "runs_b", clock={"radar_latency_s": 0.03})
     for name in ("radar", "lidar", "imu", "groundtruth"):
         t0 = read_artifact(plain / f"{name}.parquet", name)["t_ns"].to_numpy()
         t1 = read_artifact(late / f"{name}.parquet", name)["t_ns"].to_numpy()
         np.testing.assert_array_equal(t1, t0 - 30_000_000 if name == "radar" else t0)
     stamps = set(read_artifact(late / "radar.parquet", "radar")["t_ns"].to_numpy())
     assert stamps == {t - 30_000_000 for t, _ in sc.radar}
-    with pytest.raises(UserError, match=r"ingest\.radar_latency_s=2\.0"):
-        ingest(log, tmp_path / "runs_c", radar_latency_s=2.0)
+    with pytest.raises(UserError, match=r"ingest\.clock\.radar_latency_s=2\.0"):
+        ingest(log, tmp_path / "runs_c", clock={"radar_latency_s": 2.0})
 
 
 @pytest.mark.parametrize("form", ["ros1", "folder"])
@@ -236,7 +236,7 @@ def test_label_sidecar_is_joined_by_scan_and_point_index(tmp_path: Path, form: s
 def test_odometry_topic_is_kept_when_named(tmp_path: Path) -> None:
     sc = make_scene()
     bag = write_log(tmp_path / "log", sc, "ros1")
-    out = ingest(bag, tmp_path / "runs", odometry_topic=GT_TOPIC)
+    out = ingest(bag, tmp_path / "runs", topics={"odometry": GT_TOPIC})
     odo = read_artifact(out / "bag_odometry.parquet", "groundtruth")
     np.testing.assert_array_equal(odo["t_ns"].to_numpy(), sc.gt_t)
 

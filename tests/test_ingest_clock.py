@@ -1,4 +1,4 @@
-"""Choosing each stream's clock (stages/ingest/clock.py): one test per case of ``ingest.time_source``."""
+"""Choosing each stream's clock (stages/ingest/clock.py): one test per case of ``ingest.clock.time_source``."""
 
 from __future__ import annotations
 

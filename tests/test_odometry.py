@@ -120,7 +120,7 @@ def test_odometry_stage_ekf_anchored_at_groundtruth(circle_log, tmp_path: Path) 
 
 def test_odometry_from_a_bag_topic(circle_log, tmp_path: Path) -> None:
     bag, run = circle_log
-    over = {"ingest": {"odometry_topic": GT_TOPIC}, "odometry": {"source": "bag"}}
+    over = {"ingest": {"topics": {"odometry": GT_TOPIC}}, "odometry": {"source": "bag"}}
     out = run_stages(bag, tmp_path / "runs", ["odometry"], over)
     assert not (out / "filter").exists()  # the bag source needs no filter
     odo = read_artifact(out / "odometry" / "odometry.parquet", "odometry")

@@ -106,7 +106,7 @@ def test_increments_and_their_covariance_ignore_a_rigid_motion_of_the_trajectory
 def test_bag_source_writes_the_parameter_covariance(tmp_path) -> None:
     run = circle_run(duration=6.0, seed=3, gyro_noise=1.5e-4, accel_noise=6e-4)
     bag = write_circle_log(tmp_path / "circle", run)
-    over = {"ingest": {"odometry_topic": GT_TOPIC}, "odometry": {"source": "bag", "bag": {"std_xy": 0.01}}}
+    over = {"ingest": {"topics": {"odometry": GT_TOPIC}}, "odometry": {"source": "bag", "bag": {"std_xy": 0.01}}}
     out = run_stages(bag, tmp_path / "runs", ["odometry"], over)
     odo = read_artifact(out / "odometry" / "odometry.parquet", "odometry")
     u = se2_increments(np.stack([odo[c].to_numpy() for c in ("x", "y", "yaw")], axis=1))

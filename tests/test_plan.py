@@ -149,8 +149,8 @@ def test_stage_writes_paths_figure_and_rerun(tmp_path: Path) -> None:
         rows = sorted((r for r in t if r["strategy"] == s), key=lambda r: r["k"])
         xy = np.array([[r["x"], r["y"]] for r in rows])
         assert np.allclose(xy[0], p.start) and np.allclose(xy[-1], p.goal)
-        assert np.linalg.norm(np.diff(xy, axis=0), axis=1).max() <= p.d_max + 1e-3
-        assert field.values(xy, False).o.max() <= p.o_max + 1e-4
+        assert np.linalg.norm(np.diff(xy, axis=0), axis=1).max() <= p.objective.d_max + 1e-3
+        assert field.values(xy, False).o.max() <= p.objective.o_max + 1e-4
         # from the west to the east end of the loop, around the central block (|x| < 3.5, |y| < 1.5)
         dense = resample_polyline(xy, 0.05)
         assert not np.any((np.abs(dense[:, 0]) < 3.5) & (np.abs(dense[:, 1]) < 1.5))
@@ -170,4 +170,4 @@ def test_default_endpoints_and_bad_parameters(tmp_path: Path) -> None:
         STAGE.run(make_context(runs, "synth", "plan", PlanParams(start=[500.0, 0.0], goal=[0.0, 3.0]), ["slam"],
                                tmp_path / "b"))
     with pytest.raises(ValueError, match="waypoint_spacing"):
-        PlanParams(waypoint_spacing=2.0, d_max=1.0)
+        PlanParams.model_validate({"astar": {"waypoint_spacing": 2.0}, "objective": {"d_max": 1.0}})

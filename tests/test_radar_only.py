@@ -31,7 +31,7 @@ def test_radar_only_workflow_builds_completes_and_scores_the_map_along_the_slam_
     assert odo["params"]["height"]["level_velocity_sigma"] > 0 and odo["params"]["height"]["mount_sigma0_deg"] > 0
     assert len(odo["stats"]["mount_error_deg"]) == 3
     voxel = json.loads((seq / "voxel" / "manifest.json").read_text())
-    assert voxel["params"]["trajectory"] == "slam" and voxel["params"]["attitude"] == "odometry"
+    assert voxel["params"]["trajectory"]["source"] == "slam" and voxel["params"]["trajectory"]["attitude"] == "odometry"
     assert voxel["stats"]["attitude"] == "odometry" and voxel["stats"]["trajectory_coverage"] >= 0.9
     meta = read_artifact(seq / "voxel" / "radar_map.parquet", "radar_map").schema.metadata
     assert meta[b"trajectory"] == b"slam"
@@ -56,8 +56,9 @@ def test_radar_only_workflow_builds_completes_and_scores_the_map_along_the_slam_
 
 
 def _records() -> list[dict]:
-    pts = {"groundtruth": {"voxel.trajectory": "groundtruth"}, "odometry": {"voxel.trajectory": "odometry"},
-           "rich_slam": {"voxel.trajectory": "slam", "voxel.slam_method": "rich_slam"}}
+    pts = {"groundtruth": {"voxel.trajectory.source": "groundtruth"},
+           "odometry": {"voxel.trajectory.source": "odometry"},
+           "rich_slam": {"voxel.trajectory.source": "slam", "voxel.trajectory.slam_method": "rich_slam"}}
     cd = {"groundtruth": 0.2, "odometry": 0.5, "rich_slam": 0.3}
     yaw = {"odometry": 4.0, "rich_slam": 2.0}
     out = []
@@ -71,9 +72,11 @@ def _records() -> list[dict]:
 
 
 def test_radar_only_rows_pair_each_map_with_the_trajectory_it_was_built_along() -> None:
-    assert source_of('{"voxel.trajectory": "slam", "voxel.slam_method": ""}') == "slam"
-    assert source_of('{"evaluate.gp_lengthscale_m": 2}') is None
-    assert source_of({"voxel.trajectory": "slam", "voxel.slam_method": "g", "voxel.attitude": "level"}) == "g (level)"
+    assert source_of('{"voxel.trajectory.source": "slam", "voxel.trajectory.slam_method": ""}') == "slam"
+    assert source_of('{"evaluate.gp.lengthscale_m": 2}') is None
+    level = {"voxel.trajectory.source": "slam", "voxel.trajectory.slam_method": "g",
+             "voxel.trajectory.attitude": "level"}
+    assert source_of(level) == "g (level)"
     rows = {r["source"]: r for r in radar_only_rows(_records())}
     assert list(rows) == ["groundtruth", "odometry", "rich_slam"]
     assert rows["odometry"]["traj.ate_yaw_rmse_anchored_deg"] == 4.0

@@ -48,13 +48,17 @@ def test_dotted_and_quoted_keys_and_list_values() -> None:
 def test_listed_combinations_of_one_stage() -> None:
     import tomllib
 
-    doc = tomllib.loads('[sweep]\nvoxel = [{trajectory = "groundtruth"}, {trajectory = "slam", slam_method = "g"}]\n'
+    doc = tomllib.loads('[sweep]\nvoxel = [{maps = "build"}, '
+                        '{trajectory.source = "slam", trajectory.slam_method = "g"}]\n'
                         '"evaluate.seed" = [0, 1]\n')
     pts = sweep_points(doc["sweep"])
-    assert [p.name for p in pts] == ["trajectory=groundtruth,seed=0", "trajectory=groundtruth,seed=1",
-                                     "trajectory=slam,slam_method=g,seed=0", "trajectory=slam,slam_method=g,seed=1"]
-    assert pts[2].overrides == {"voxel": {"trajectory": "slam", "slam_method": "g"}, "evaluate": {"seed": 0}}
-    assert pts[0].values() == {"voxel.trajectory": "groundtruth", "evaluate.seed": 0}
+    assert [p.name for p in pts] == ["maps=build,seed=0", "maps=build,seed=1",
+                                     "trajectory.source=slam,trajectory.slam_method=g,seed=0",
+                                     "trajectory.source=slam,trajectory.slam_method=g,seed=1"]
+    assert pts[2].overrides == {"voxel": {"trajectory.source": "slam", "trajectory.slam_method": "g"},
+                                "evaluate": {"seed": 0}}
+    assert pts[2].values() == {"voxel.trajectory.source": "slam", "voxel.trajectory.slam_method": "g",
+                               "evaluate.seed": 0}
     with pytest.raises(UserError, match="non-empty table"):
         expand_sweep({"voxel": [{}]})
 
@@ -71,7 +75,7 @@ def test_shipped_sweep_workflows_expand_against_the_real_stages() -> None:
     from pipeline.registry import load_stages
 
     stages = load_stages()
-    for name, n in (("sweep_fig6", 21), ("sweep_fig7", 9), ("sweep_radar_only", 7)):
+    for name, n in (("sweep_fig6", 21), ("sweep_fig7", 9), ("sweep_radar_only", 7), ("sweep_table3", 3)):
         wf = load_workflow(name)
         assert wf.stages == ["evaluate"] and len(sweep_points(wf.sweep)) == n
         for p in sweep_points(wf.sweep):

@@ -116,11 +116,13 @@ def _keys(points: Any) -> set[tuple[int, ...]]:
 def test_voxel_stage_odometry_trajectory(tmp_path: Path, ingest_dir: Path, gt_run: tuple[Path, dict]) -> None:
     """A radar-only map along the odometry's 3D pose (here the ground truth written as odometry) is the
     ground-truth map; the level lift (zero roll and pitch at one height) is not."""
-    params = VoxelParams(trajectory="odometry")
+    params = VoxelParams.model_validate({"trajectory": {"source": "odometry"}})
     assert STAGE.input_stages(params) == ("ingest", "odometry")
-    assert STAGE.input_stages(VoxelParams(trajectory="slam", radar_source="filtered")) == (
+    filtered = VoxelParams.model_validate({"trajectory": {"source": "slam"}, "radar": {"points": "filtered"}})
+    assert STAGE.input_stages(filtered) == (
         "ingest", "slam", "odometry", "filter")
-    assert STAGE.input_stages(VoxelParams(trajectory="slam", attitude="level")) == ("ingest", "slam")
+    level = VoxelParams.model_validate({"trajectory": {"source": "slam", "attitude": "level"}})
+    assert STAGE.input_stages(level) == ("ingest", "slam")
     gt = read_artifact(ingest_dir / "groundtruth.parquet", "groundtruth")
     _write_odometry(tmp_path / "odometry", gt)
     out, stats = _run(tmp_path, params, {"ingest": ingest_dir, "odometry": tmp_path / "odometry"})
@@ -134,7 +136,8 @@ def test_voxel_stage_odometry_trajectory(tmp_path: Path, ingest_dir: Path, gt_ru
     # level: zero roll and pitch at the first height, as before the 3D poses
     level_dir = tmp_path / "level"
     level_dir.mkdir()
-    out2, stats2 = _run(level_dir, VoxelParams(trajectory="odometry", attitude="level"),
+    level = VoxelParams.model_validate({"trajectory": {"source": "odometry", "attitude": "level"}})
+    out2, stats2 = _run(level_dir, level,
                         {"ingest": ingest_dir, "odometry": tmp_path / "odometry"})
     assert stats2["se2_height"] == pytest.approx(gt.column("z").to_numpy()[0])
     a2 = _keys(_map(out2, "radar")[0])
@@ -146,15 +149,17 @@ def test_voxel_stage_trajectory_that_misses_the_scans_or_a_method_not_run(tmp_pa
     gt = read_artifact(ingest_dir / "groundtruth.parquet", "groundtruth")
     span = int(gt.column("t_ns").to_numpy()[-1] - gt.column("t_ns").to_numpy()[0])
     _write_odometry(tmp_path / "odometry", gt, t_shift_ns=span // 2)  # covers about half the radar scans
-    with pytest.raises(UserError, match=r"covers \d+\.\d % of the \d+ radar scans \(voxel.min_coverage = 0.9\)"):
-        _run(tmp_path, VoxelParams(trajectory="odometry"), {"ingest": ingest_dir, "odometry": tmp_path / "odometry"})
+    with pytest.raises(UserError, match=r"covers \d+\.\d % of the \d+ radar scans "
+                                         r"\(voxel.trajectory.min_coverage = 0.9\)"):
+        _run(tmp_path, VoxelParams.model_validate({"trajectory": {"source": "odometry"}}),
+             {"ingest": ingest_dir, "odometry": tmp_path / "odometry"})
     assert not (tmp_path / "out" / "radar_map.parquet").exists()
     slam = tmp_path / "slam"
     slam.mkdir()
     write_artifact({"scan": np.arange(3, dtype=np.int32), "t_ns": np.arange(3), "x": np.zeros(3), "y": np.zeros(3),
                     "yaw": np.zeros(3), "n_eff": np.ones(3)}, slam / "trajectory_rich_slam.parquet", "trajectory")
     with pytest.raises(UserError, match=r"slam method 'fastslam_grid' was not run \(ran: rich_slam\)"):
-        _run(tmp_path, VoxelParams(trajectory="slam", slam_method="fastslam_grid"),
+        _run(tmp_path, VoxelParams.model_validate({"trajectory": {"source": "slam", "slam_method": "fastslam_grid"}}),
              {"ingest": ingest_dir, "odometry": tmp_path / "odometry", "slam": slam})
 
 
@@ -177,7 +182,8 @@ def test_voxel_stage_without_groundtruth(tmp_path: Path, ingest_dir: Path) -> No
         (bare / f.name).write_bytes(f.read_bytes())
     empty = {c: np.zeros(0) for c in ("x", "y", "z", "qx", "qy", "qz", "qw")}
     write_artifact({"t_ns": np.zeros(0, np.int64), **empty}, bare / "groundtruth.parquet", "groundtruth")
-    with pytest.raises(UserError, match=r"groundtruth.parquet: no ground-truth poses; .*voxel.trajectory=odometry"):
+    with pytest.raises(UserError, match=r"groundtruth.parquet: no ground-truth poses; "
+                                         r".*voxel.trajectory.source=odometry"):
         _run(tmp_path, VoxelParams(), {"ingest": bare})
 
 

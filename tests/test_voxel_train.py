@@ -116,20 +116,6 @@ def test_validate_reports_f1_at_its_best_threshold() -> None:
     assert v["val_f1"] == max(v["val_f1_by_threshold"]) or abs(v["val_f1"] - max(v["val_f1_by_threshold"])) < 1e-4
 
 
-def test_union_rule_is_decided_on_validation_tables_only() -> None:
-    from experiments.rmap_voxel_table3 import decide_union
-
-    def table(split: str, cd_alone: float, cd_union: float, f_alone: float, f_union: float) -> dict:
-        return {"split": split, "overall": {"voxel": {"cd_l2": cd_alone, "fscore_0.15": f_alone},
-                                            "voxel + prefiltered radar": {"cd_l2": cd_union, "fscore_0.15": f_union}}}
-
-    assert decide_union(table("val", 0.5, 0.4, 0.50, 0.495))
-    assert not decide_union(table("val", 0.5, 0.4, 0.50, 0.48))
-    assert not decide_union(table("val", 0.4, 0.5, 0.50, 0.52))
-    with pytest.raises(ValueError, match="validation scenes only"):
-        decide_union(table("test", 0.5, 0.4, 0.5, 0.5))
-
-
 def test_crop_stream_workers_are_seeded_and_repeatable() -> None:
     """With workers, batches come from generators seeded by (seed, start step, worker): the same run gives the
     same batches, and the two workers (and another start step) draw different crops."""
@@ -155,7 +141,6 @@ def test_crop_stream_workers_are_seeded_and_repeatable() -> None:
 def test_training_runs_from_an_initial_checkpoint_and_counts_its_time(tmp_path) -> None:
     """``--init``: the weights and config of a checkpoint, a fresh schedule, and the checkpoint's own training
     seconds added to the new record (the CPU training budget is cumulative)."""
-    from stages.complete.train_voxel import main
     from stages.complete.voxel_checkpoint import VoxelMeta, load_voxel_checkpoint, save_voxel_checkpoint
 
     root = _toy_map_set(tmp_path)
@@ -164,22 +149,34 @@ def test_training_runs_from_an_initial_checkpoint_and_counts_its_time(tmp_path) 
     save_voxel_checkpoint(init, model, VoxelMeta(model.config, 0.15, 0.5, Band(),
                                                  train={"selected": {"step": 7, "elapsed_s": 100.0}}))
     out = tmp_path / "out.safetensors"
-    rc = main(["--maps", str(root), "--out", str(out), "--init", str(init), "--time-limit", "0.01",
-               "--val-every", "1"])
-    assert rc == 0
+    r = _pipeline("train", "--model", "voxel", "--maps", str(root), "--out", str(out), "--init", str(init),
+                  "--time-limit", "0.01", "-o", "val_every=1", "--device", "cpu")
+    assert r.returncode == 0, r.stderr
     m, meta = load_voxel_checkpoint(out)
     assert m.config.widths == (4, 6)
     assert meta.train["init"]["selected_step"] == 7
     assert meta.train["total_elapsed_s"] >= 100.0
 
 
-def test_cuda_device_without_cuda_is_a_one_line_error(tmp_path, capsys) -> None:
-    from stages.complete.train_voxel import main
-
+def test_cuda_device_without_cuda_is_a_one_line_error(tmp_path) -> None:
     if torch.cuda.is_available():
         pytest.skip("this machine has CUDA")
-    rc = main(["--maps", str(tmp_path), "--device", "cuda"])
-    assert rc == 2 and "no CUDA device" in capsys.readouterr().err
+    r = _pipeline("train", "--model", "voxel", "--maps", str(tmp_path), "--device", "cuda")
+    assert r.returncode == 2 and "no CUDA device" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_voxel_training_settings_are_checked_by_name(tmp_path) -> None:
+    r = _pipeline("train", "--model", "voxel", "--maps", str(_toy_map_set(tmp_path)), "-o", "jiter=4")
+    assert r.returncode == 2 and "--option jiter: not a voxel training setting" in r.stderr
+    r = _pipeline("train", "--model", "voxel", "--seqs", "demo")
+    assert r.returncode == 2 and "give --maps" in r.stderr
+
+
+def _pipeline(*args: str):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True, text=True)
 
 
 def _toy_map_set(tmp_path):

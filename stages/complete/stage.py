@@ -29,7 +29,7 @@ from pydantic import Field
 
 from core.errors import UserError
 from core.paths import PROJECT_ROOT
-from core.stage import Stage, StageContext, StageParams
+from core.stage import ParamGroup, Stage, StageContext, StageParams
 from stages.complete.data import F64, read_patches, voxel_downsample
 from stages.complete.voxel_grid import Band, in_band, trajectory_band
 
@@ -65,6 +65,33 @@ def default_checkpoint(kind: str, model: str = "uppointr") -> str:
     return DEFAULT_CHECKPOINT if kind == "simulated" else REAL_CHECKPOINT
 
 
+class PrefilterParams(ParamGroup):
+    """The radar pre-filter of the map input."""
+
+    mode: Literal["auto", "none", "band"] = Field("auto", description="band = keep radar voxels within band_radius "
+                                                  "and band_z_below..band_z_above of the recorded trajectory; auto = "
+                                                  "band for the voxel model, none for uppointr")
+    band_radius: float = Field(7.0, gt=0, description="horizontal distance to the trajectory (m)")
+    band_z_below: float = Field(-3.0, description="lowest height over the trajectory (m)")
+    band_z_above: float = Field(4.5, description="highest height over the trajectory (m)")
+
+
+class RuntimeParams(ParamGroup):
+    """Where and how the network runs (the output does not depend on these, bf16 aside)."""
+
+    device: Literal["cpu", "cuda", "auto"] = Field("cpu", description="where the network runs; auto = cuda "
+                                                   "when torch sees a GPU")
+    threads: int | None = Field(None, ge=1, le=256, description="torch CPU threads (None = torch's default)")
+    batch_size: int = Field(8, ge=1, le=4096, description="uppointr: patches per forward pass")
+    tile: int | None = Field(None, ge=8, le=4096,
+                             description="voxel model: xy tile core (voxels, a multiple of 8); None = "
+                             "one pass over the whole map up to 24 M voxels, else 256; the halo is the receptive "
+                             "radius, so the output does not depend on it")
+    bf16: bool = Field(False, description="voxel model: run the network under bfloat16 autocast (1.5x faster on a "
+                       "CPU with bf16 support, Table III unchanged to the printed digit on the 18 test scenes; the "
+                       "probabilities differ slightly, so the map may differ by a few voxels)")
+
+
 class CompleteParams(StageParams):
     """Parameters of the `complete` stage."""
 
@@ -74,32 +101,16 @@ class CompleteParams(StageParams):
                                                   "with its auto checkpoint), their maps written as "
                                                   "completed_map_<model>.parquet for side-by-side tables; auto = "
                                                   "every model on map sequences (rmap_*), only `model` elsewhere")
-    prefilter: Literal["auto", "none", "band"] = Field("auto", description="radar pre-filter of the map input: "
-                                                       "band = keep radar voxels within band_radius and "
-                                                       "band_z_below..band_z_above of the recorded trajectory; "
-                                                       "auto = band for the voxel model, none for uppointr")
-    band_radius: float = Field(7.0, gt=0, description="pre-filter: horizontal distance to the trajectory (m)")
-    band_z_below: float = Field(-3.0, description="pre-filter: lowest height over the trajectory (m)")
-    band_z_above: float = Field(4.5, description="pre-filter: highest height over the trajectory (m)")
-    tile: int | None = Field(None, ge=8, le=4096,
-                             description="voxel model: xy tile core (voxels, a multiple of 8); None = "
-                             "one pass over the whole map up to 24 M voxels, else 256; the halo is the receptive "
-                             "radius, so the output does not depend on it")
     checkpoint: str = Field("auto", description="trained network (.safetensors or .pt); relative paths are "
                             "looked up from the working directory, then the project root; auto = "
                             f"{DEFAULT_CHECKPOINT} for simulated sequences, {REAL_CHECKPOINT} for real data "
                             f"(ColoRadar logs, map sequences); with model = voxel {VOXEL_CHECKPOINT}")
-    device: Literal["cpu", "cuda", "auto"] = Field("cpu", description="where the network runs; auto = cuda "
-                                                   "when torch sees a GPU")
-    bf16: bool = Field(False, description="voxel model: run the network under bfloat16 autocast (1.5x faster on a "
-                       "CPU with bf16 support, Table III unchanged to the printed digit on the 18 test scenes; the "
-                       "probabilities differ slightly, so the map may differ by a few voxels)")
-    batch_size: int = Field(8, ge=1, le=4096, description="patches per forward pass")
     seed: int = Field(0, description="seed of the input resampling (patches with more or fewer points than the "
                       "network's input size) and of torch")
     resolution: float | None = Field(None, ge=0.01, description="downsampling voxel size (m); None = the voxel "
                                      "stage's resolution (RMap: the map resolution, 0.15 m)")
-    threads: int | None = Field(None, ge=1, le=256, description="torch CPU threads (None = torch's default)")
+    prefilter: PrefilterParams = Field(default_factory=PrefilterParams, description="the radar pre-filter")
+    runtime: RuntimeParams = Field(default_factory=RuntimeParams, description="where the network runs")
 
 
 def resolve_checkpoint(path: str, kind: str = "simulated", model: str = "uppointr") -> Path:
@@ -187,9 +198,9 @@ class CompleteStage(Stage):
         from stages.complete.infer import resolve_device
 
         p: CompleteParams = ctx.params
-        if p.threads is not None:
-            torch.set_num_threads(p.threads)
-        device = resolve_device(p.device)
+        if p.runtime.threads is not None:
+            torch.set_num_threads(p.runtime.threads)
+        device = resolve_device(p.runtime.device)
         models = self.models_to_run(ctx.seq.kind, p)
         # every model runs before anything is written: a failing one leaves no file behind
         runs: dict[Model, tuple[F64, dict[str, Any]]] = {}
@@ -242,7 +253,7 @@ class CompleteStage(Stage):
                             "or give an UpPoinTr checkpoint")
         model, meta = load_checkpoint(ckpt, device)
         patches = read_patches(ctx.input("patches", "patches.parquet"), ctx.seq.name)
-        if p.prefilter == "band":
+        if p.prefilter.mode == "band":
             traj = self._trajectory(ctx)
             band = self.band(p)
             patches = [q for q in (replace(q, radar=trajectory_band(q.radar, traj, band)) for q in patches)
@@ -250,7 +261,7 @@ class CompleteStage(Stage):
         res = self.resolution(ctx)
         t0 = time.perf_counter()
         with ctx.progress(len(patches), "completing patches (UpPoinTr)") as advance:
-            result = complete_patches(model, meta, patches, device, p.batch_size, p.seed, advance)
+            result = complete_patches(model, meta, patches, device, p.runtime.batch_size, p.seed, advance)
         wall = time.perf_counter() - t0
         merged = np.concatenate(result.points) if result.points else np.zeros((0, 3))
         down, counts = voxel_downsample(merged, res)
@@ -271,12 +282,12 @@ class CompleteStage(Stage):
             "seconds_per_patch": result.seconds_per_patch,
             "wall_seconds": wall,
             "model": "uppointr",
-            "prefilter": p.prefilter if p.prefilter != "auto" else "none",
+            "prefilter": p.prefilter.mode if p.prefilter.mode != "auto" else "none",
         }
 
     @staticmethod
     def band(p: CompleteParams) -> Band:
-        return Band(p.band_radius, p.band_z_below, p.band_z_above)
+        return Band(p.prefilter.band_radius, p.prefilter.band_z_below, p.prefilter.band_z_above)
 
     def _cloud(self, path: Path, schema: str) -> F64:
         from schemas import read_artifact
@@ -289,7 +300,7 @@ class CompleteStage(Stage):
         if not path.is_file():
             raise UserError(f"complete: {ctx.seq.name} has no recorded trajectory ({path} is missing; the voxel "
                             "model and the band pre-filter need it); rerun `pipeline run voxel --seq "
-                            f"{ctx.seq.name} --force`, or set complete.model = uppointr and complete.prefilter = "
+                            f"{ctx.seq.name} --force`, or set complete.model = uppointr and complete.prefilter.mode = "
                             "none and leave voxel out of complete.models")
         traj = self._cloud(path, "map_trajectory")
         if len(traj) == 0:
@@ -315,8 +326,8 @@ class CompleteStage(Stage):
         if abs(res - meta.resolution) > 1e-9:
             raise UserError(f"{ckpt}: trained for {meta.resolution:g} m voxels, the map is at {res:g} m; train a "
                             "voxel model at this resolution or set voxel.resolution")
-        if p.tile is not None and p.tile % model.stride():
-            raise UserError(f"complete.tile = {p.tile}: must be a multiple of {model.stride()}")
+        if p.runtime.tile is not None and p.runtime.tile % model.stride():
+            raise UserError(f"complete.runtime.tile = {p.runtime.tile}: must be a multiple of {model.stride()}")
         radar_path = ctx.input("voxel", "radar_map.parquet")
         radar = self._cloud(radar_path, "radar_map")
         if len(radar) == 0:
@@ -330,19 +341,20 @@ class CompleteStage(Stage):
         except LatticeError as exc:
             raise UserError(f"{ctx.input_dirs['voxel']}: {exc}; the radar and lidar maps must be voxel centres "
                             "of one lattice") from exc
-        prefilter = p.prefilter in ("auto", "band")
+        prefilter = p.prefilter.mode in ("auto", "band")
         if prefilter:
             keep = in_band(radar, traj, self.band(p))
             keys = keys[keep]
             if len(keys) == 0:
                 raise UserError(f"{radar_path}: no radar voxel within the pre-filter band of the trajectory "
-                                f"({self.band(p)}); widen complete.band_* or set complete.prefilter = none")
+                                f"({self.band(p)}); widen complete.prefilter.band_* or set "
+                                "complete.prefilter.mode = none")
         t0 = time.perf_counter()
         dom = map_domain(traj, res, meta.band, model.stride())
-        core = p.tile if p.tile is not None else auto_core(dom)
+        core = p.runtime.tile if p.runtime.tile is not None else auto_core(dom)
         with ctx.progress(len(tile_origins(dom, core)), "completing voxel tiles") as advance:
             pred = predict_tiles(model, keys, traj, res, meta.band, core=core, device=device, advance=advance,
-                                 bf16=p.bf16)
+                                 bf16=p.runtime.bf16)
         wall = time.perf_counter() - t0
         out = key_centres(meta.output_keys(pred, keys), res)
         return out, {
@@ -353,7 +365,7 @@ class CompleteStage(Stage):
             "n_points": len(out),
             "resolution": res,
             "device": str(device),
-            "bf16": p.bf16,
+            "bf16": p.runtime.bf16,
             "checkpoint": str(ckpt.relative_to(PROJECT_ROOT) if ckpt.is_relative_to(PROJECT_ROOT) else ckpt),
             "model_size": f"voxel U-Net {n_parameters(model):,} parameters",
             "n_parameters": n_parameters(model),

@@ -1,5 +1,5 @@
 """Training of the voxel completion model on a published map set:
-``python -m stages.complete.train_voxel --maps ../shared/data/coloradar_maps --out data/models/rmap_voxel.safetensors``.
+``pipeline train --model voxel --maps ../shared/data/coloradar_maps --out data/models/rmap_voxel.safetensors``.
 
 - Scenes: only ``split = train`` of the map set's ``index.json``; the validation part is fixed before training
   by :func:`stages.complete.maps.validation_scenes` (in every environment the train scene with the highest
@@ -25,7 +25,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -404,49 +403,3 @@ def train_voxel(root: Path, out: Path, cfg: VoxelTrainConfig, band: Band, resume
                 f"P {v['val_precision']:.3f} R {v['val_recall']:.3f}{'  * saved' if improved else ''}")
     return {"steps": step, "elapsed_s": elapsed, "best_val_f1": best, "out": str(out), "device": str(dev),
             "crops": step * cfg.batch_size}
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m stages.complete.train_voxel", description=__doc__.splitlines()[0])
-    ap.add_argument("--maps", type=Path, required=True, help="map set (index.json + <scene>/*.parquet)")
-    ap.add_argument("--out", type=Path, default=Path("data/models/rmap_voxel.safetensors"))
-    ap.add_argument("--time-limit", type=float, default=3600.0, help="training seconds")
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--resume", action="store_true")
-    ap.add_argument("--init", type=Path, default=None, help="start from this voxel checkpoint's weights")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--val-every", type=int, default=100)
-    ap.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
-    ap.add_argument("--workers", type=int, default=0, help="crop-building worker processes")
-    ap.add_argument("--batch-size", type=int, default=None)
-    ap.add_argument("--lr", type=float, default=None)
-    ap.add_argument("--widths", default=None, help="comma-separated widths per level (default 8,24,48,64)")
-    ap.add_argument("--crop-xy", type=int, default=None, help="crop side in x and y (voxels; default 96)")
-    ap.add_argument("--jitter", type=float, default=None, help="xy jitter of the crop centre (m; default 3)")
-    ap.add_argument("--coverage-weight", type=float, default=None, help="weight of the coverage term (default 0)")
-    args = ap.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    from rich.console import Console
-
-    console = Console(stderr=True)
-    try:
-        extra: dict[str, Any] = {k: v for k, v in (("batch_size", args.batch_size), ("lr", args.lr),
-                                                   ("crop_xy", args.crop_xy), ("jitter", args.jitter),
-                                                   ("coverage_weight", args.coverage_weight)) if v is not None}
-        if args.widths:
-            extra["widths"] = tuple(int(w) for w in args.widths.split(","))
-        cfg = VoxelTrainConfig(time_limit=args.time_limit, seed=args.seed, val_every=args.val_every,
-                               workers=args.workers, **extra)
-        if args.device.startswith("cuda") and not torch.cuda.is_available():
-            raise UserError(f"--device {args.device}: torch sees no CUDA device here; use --device cpu")
-        summary = train_voxel(args.maps, args.out, cfg, Band(), args.resume, log=console.log, device=args.device,
-                              init=args.init)
-    except UserError as exc:
-        console.print(f"error: {exc}")
-        return 2
-    console.print(json.dumps(summary))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

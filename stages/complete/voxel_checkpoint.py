@@ -68,7 +68,7 @@ class VoxelMeta:
                             "give a voxel checkpoint (data/models/rmap_voxel.safetensors)")
         if d.get("format_version") != VOXEL_FORMAT_VERSION:
             raise UserError(f"{where}: voxel checkpoint format version {d.get('format_version')} is not "
-                            f"{VOXEL_FORMAT_VERSION}; retrain it with python -m stages.complete.train_voxel")
+                            f"{VOXEL_FORMAT_VERSION}; retrain it with pipeline train --model voxel")
         if d.get("tta", "1") != "1":
             raise UserError(f"{where}: its threshold was chosen on predictions averaged over {d['tta']} lattice "
                             "symmetries, which this version does not compute; retrain it or decide its threshold "
@@ -120,7 +120,7 @@ def load_voxel_checkpoint(path: str | Path, device: str = "cpu") -> tuple[VoxelU
     """The model (eval mode, float32, on ``device``) and its metadata; one-line errors for anything else."""
     path = Path(path)
     if not path.is_file():
-        raise UserError(f"{path}: voxel checkpoint not found; train one with python -m stages.complete.train_voxel "
+        raise UserError(f"{path}: voxel checkpoint not found; train one with pipeline train --model voxel "
                         "or set complete.checkpoint")
     if path.suffix != ".safetensors":
         raise UserError(f"{path}: a voxel checkpoint must be a .safetensors file")

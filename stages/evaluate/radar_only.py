@@ -1,9 +1,9 @@
 """Radar-only maps: the RMap maps built along ground truth, the odometry and each SLAM method.
 
 The records are a sweep's (``workflows/sweep_radar_only.toml``): one point per trajectory the voxel stage
-built its radar map along (``voxel.trajectory`` and ``voxel.slam_method`` in the point's ``params``), each
-with the evaluate stage's map metrics (``radar_map``, ``completed_map`` against the lidar map built along
-ground truth) and trajectory metrics. A row pairs a point's maps with the errors of the trajectory they were
+built its radar map along (``voxel.trajectory.source`` and ``voxel.trajectory.slam_method`` in the point's
+``params``), each with the evaluate stage's map metrics (``radar_map``, ``completed_map`` against the lidar map
+built along ground truth) and trajectory metrics. A row pairs a point's maps with the errors of the trajectory they were
 built along: without alignment (``*_anchored``: every estimate starts at the ground-truth pose, so these are
 the errors the maps inherit) and under RICH-SLAM's Table III protocol. Pure functions on records.
 """
@@ -26,14 +26,14 @@ MAPS = ("radar_map", "completed_map")
 
 def source_of(params: str | Mapping[str, Any]) -> str | None:
     """The trajectory a point's maps were built along: 'groundtruth', 'odometry', a SLAM method's name
-    ('slam' for the default method's file), with ' (level)' for ``voxel.attitude = level``; None when the
-    point does not set ``voxel.trajectory``."""
+    ('slam' for the default method's file), with ' (level)' for ``voxel.trajectory.attitude = level``; None when the
+    point does not set ``voxel.trajectory.source``."""
     p = json.loads(params) if isinstance(params, str) else dict(params)
-    traj = p.get("voxel.trajectory")
+    traj = p.get("voxel.trajectory.source")
     if traj is None:
         return None
-    name = str(p.get("voxel.slam_method") or "slam") if traj == "slam" else str(traj)
-    return f"{name} (level)" if traj != "groundtruth" and p.get("voxel.attitude") == "level" else name
+    name = str(p.get("voxel.trajectory.slam_method") or "slam") if traj == "slam" else str(traj)
+    return f"{name} (level)" if traj != "groundtruth" and p.get("voxel.trajectory.attitude") == "level" else name
 
 
 def radar_only_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:

@@ -150,11 +150,13 @@ def write_figures(records: Sequence[dict[str, Any]], out: Path, curves: Mapping[
 
 # -- sweeps -----------------------------------------------------------------------------------------------------
 def sweep_tables(records: Sequence[dict[str, Any]]) -> list[tuple[str, list[str], list[list[str]]]]:
-    """AUC per point and method (the sweep's point names as rows), Fig. 6 means over the points, and the
-    radar-only map table when the points vary the voxel stage's trajectory."""
+    """Table III over seeds when the points vary ``slam.seed``, the radar-only map table when they vary the
+    voxel stage's trajectory, AUC per point and method (the sweep's point names as rows) and Fig. 6 means over
+    the points."""
     from stages.evaluate.radar_only import radar_only_table
+    from stages.evaluate.seed_table import seed_tables
 
-    out = []
+    out = seed_tables(records)
     ro = radar_only_table(records)
     if ro is not None:
         out.append(ro)
@@ -204,10 +206,14 @@ def sweep_figures(kind: str, root: Path, name: str, description: str, points: Se
         from stages.evaluate.radar_only import plot_map_vs_trajectory
 
         return [plot_map_vs_trajectory(root / f"{name}.png", records, description)]
+    if kind == "seed_spread":
+        from stages.evaluate.seed_table import plot_seed_spread
+
+        return [plot_seed_spread(root / f"{name}.png", records, description)]
     raise ValueError(f"unknown sweep figure {kind!r}; known: {', '.join(SWEEP_FIGURES)}")
 
 
-SWEEP_FIGURES = ("auc_vs_features", "hyperparameter_grid", "map_vs_trajectory")
+SWEEP_FIGURES = ("auc_vs_features", "hyperparameter_grid", "map_vs_trajectory", "seed_spread")
 
 
 def plot_auc_vs_features(path: Path, records: Sequence[Mapping[str, Any]], seqs: Sequence[str],

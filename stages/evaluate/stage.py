@@ -78,6 +78,11 @@ class EvaluateStage(Stage):
             need += ["voxel"]
         return tuple(n for n in self.inputs if n in need)
 
+    def optional_input_stages(self, params: StageParams) -> tuple[str, ...]:
+        """The completed map and its patches: only the RMap section reads them."""
+        assert isinstance(params, EvaluateParams)
+        return self.optional_inputs if "rmap" in params.sections else ()
+
     def skip_reason_for_inputs(self, seq: SequenceInfo, params: StageParams,
                                input_dirs: Mapping[str, Path]) -> str | None:
         assert isinstance(params, EvaluateParams)
@@ -482,7 +487,7 @@ class Evaluation:
         maps = {"radar_map": cloud("voxel", "radar_map.parquet", "radar_map")}
         d = ctx.input_dirs.get("complete")
         per_model = _complete_models(d) if d is not None else {}
-        if d is not None and (d / BAND_MAP).exists():  # the pre-filtered input (complete.prefilter = band)
+        if d is not None and (d / BAND_MAP).exists():  # the pre-filtered input (complete.prefilter.mode = band)
             maps[BAND_METHOD] = cloud("complete", BAND_MAP, "completed_map")
         if d is not None and (d / "completed_map.parquet").exists():
             maps["completed_map"] = cloud("complete", "completed_map.parquet", "completed_map")

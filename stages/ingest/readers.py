@@ -198,7 +198,7 @@ class BagSource(Source):
         if len(cands) > 1:
             raise UserError(
                 f"{self.path}: several candidate {stream} topics ({', '.join(cands)}); pick one with "
-                f"--set ingest.{stream}_topic=TOPIC"
+                f"--set ingest.topics.{stream}=TOPIC"
             )
         return cands[0] if cands else ""
 
@@ -213,14 +213,14 @@ class BagSource(Source):
                 if stream in prof.required:
                     raise UserError(
                         f"{self.path}: no {stream} topic found for profile '{prof.name}'; set it with "
-                        f"--set ingest.{stream}_topic=TOPIC (the log has: {self.available()})"
+                        f"--set ingest.topics.{stream}=TOPIC (the log has: {self.available()})"
                     )
                 continue
             if topic not in self.topics:
                 if stream in prof.required or overrides.get(stream):
                     raise UserError(
                         f"{self.path}: topic '{topic}' ({stream}, profile '{prof.name}') not found; the log has: "
-                        f"{self.available()}; set --set ingest.{stream}_topic=TOPIC"
+                        f"{self.available()}; set --set ingest.topics.{stream}=TOPIC"
                     )
                 self.missing_optional.append(f"{stream} topic '{topic}'")
                 continue
@@ -318,7 +318,7 @@ class BagSource(Source):
                         f"{self.path}: topic '{self.streams[stream]}' lacks field(s) for {', '.join(missing)} "
                         f"(candidates {[wanted[m] for m in missing]}; message has: "
                         f"{', '.join(f.name for f in fields)}); "
-                        f"map them with --set ingest.{stream}_{missing[0]}_field=NAME"
+                        f"map them with --set ingest.fields.{stream}_{missing[0]}=NAME"
                     )
                 layout = layouts[key] = pc2.prepare(fields, int(msg.point_step), bool(msg.is_bigendian), mapping)
             return pc2.view(layout, msg.data, row_step=int(msg.row_step), width=int(msg.width), height=int(msg.height))

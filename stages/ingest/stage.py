@@ -6,11 +6,11 @@ written at the end together with ``calibration.json`` (base <- radar / lidar / i
 field names and frames come from the dataset profile ``data/datasets/<dataset>.toml`` (or a profile file
 given as ``dataset = "path.toml"``).
 
-Before streaming, the clock of every stream is chosen from its first messages (``time_source``,
+Before streaming, the clock of every stream is chosen from its first messages (``clock.time_source``,
 :mod:`stages.ingest.clock`): zero, constant or foreign header stamps are lined up and warned about, and
 radar and IMU spans that still do not overlap are a user error. Empty radar scans and stretches without
-radar points longer than ``radar_gap_warn_s`` are counted in the manifest and warned about. Extrinsics
-come from ``--set ingest.<sensor>_extrinsic``, the folder's calib files, tf, the profile's
+radar points longer than ``clock.radar_gap_warn_s`` are counted in the manifest and warned about. Extrinsics
+come from ``--set ingest.frames.<sensor>_extrinsic``, the folder's calib files, tf, the profile's
 ``[extrinsics.<sensor>]`` (no warning) or identity (warned, naming the frame or its absence).
 """
 
@@ -36,7 +36,7 @@ from core.geometry import (
     pose_matrix,
     poses_to_matrices,
 )
-from core.stage import Stage, StageContext, StageParams
+from core.stage import ParamGroup, Stage, StageContext, StageParams
 from schemas.io import ArtifactWriter, write_artifact
 from sources.recorded import fingerprint
 from stages.ingest.clock import NS, ClockPlan, TimeSource, plan_clocks, spans_overlap
@@ -50,55 +50,86 @@ if TYPE_CHECKING:
 SENSORS = ("radar", "lidar", "imu")
 
 
-class IngestParams(StageParams):
-    """Parameters of the `ingest` stage (profile overrides and streaming knobs)."""
+def _seven(v: list[float]) -> list[float]:
+    if v and (len(v) != 7 or not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-9):
+        raise ValueError("give 7 numbers: tx ty tz (m) and a non-zero quaternion qx qy qz qw")
+    return v
 
-    dataset: str = Field("", description="dataset profile in data/datasets/ ('' = the sequence's dataset)")
-    radar_topic: str = Field("", description="override the profile's radar PointCloud2 topic")
-    lidar_topic: str = Field("", description="override the profile's lidar PointCloud2 topic")
-    imu_topic: str = Field("", description="override the profile's sensor_msgs/Imu topic")
-    groundtruth_topic: str = Field("", description="override the profile's ground-truth pose topic")
-    odometry_topic: str = Field("", description="an odometry topic to keep as bag_odometry.parquet")
-    radar_doppler_field: str = Field("", description="PointCloud2 field holding the Doppler velocity")
-    radar_intensity_field: str = Field("", description="PointCloud2 field holding the radar intensity")
-    lidar_intensity_field: str = Field("", description="PointCloud2 field holding the lidar intensity")
-    doppler_sign: float | None = Field(None, description="override the profile's Doppler sign factor")
-    reorder_window: int = Field(16, ge=1, le=1_000_000,
-                                description="messages re-sorted by stamp per stream (out-of-order)")
-    batch_rows: int = Field(262_144, ge=1000, le=16_777_216, description="rows per Parquet row group (bounds memory)")
-    rerun_radar_every: int = Field(1, ge=1, le=1_000_000, description="log every n-th raw radar scan to Rerun")
-    rerun_lidar_every: int = Field(10, ge=1, le=1_000_000, description="log every n-th lidar scan to Rerun")
-    rerun_lidar_points: int = Field(2000, ge=1, le=10_000_000, description="random points kept per logged lidar scan")
-    rerun_flush_scans: int = Field(500, ge=1, le=1_000_000, description="scans buffered before a Rerun send_columns")
-    seed: int = Field(0, description="seed of the lidar downsampling for Rerun")
-    time_source: TimeSource = Field(
-        "auto", description="'auto': line up streams whose header stamps are zero, constant or on another clock; "
-                            "'header': header stamps as they are; 'record': the log's record time")
-    clock_tolerance_s: float = Field(1.0, gt=0, description="auto: header-record offsets further apart than this "
-                                                            "are different clocks, s")
-    clock_sample: int = Field(50, ge=2, le=1_000_000,
-                              description="first messages per stream examined to choose the clock")
-    radar_latency_s: float = Field(0.0, ge=-0.5, le=0.5, description="radar stamp minus the time the scan measured "
-                                   "the scene (s), subtracted from every radar stamp: a radar stamped on arrival "
-                                   "(the TI sensors of ColoRadar) is late by its frame and processing time")
-    radar_gap_warn_s: float = Field(1.0, gt=0, description="warn about a time without radar points longer than this, s")
-    max_gap_s: float = Field(5.0, gt=0, le=3600, description="longest time without radar points or IMU samples the "
-                             "odometry may dead-reckon through (s); a longer one stops ingest, naming its times")
-    base_frame: str = Field("", description="override the profile's base (body) frame name")
-    radar_frame: str = Field("", description="override the radar frame name (when the messages' frame_id is empty)")
-    imu_frame: str = Field("", description="override the IMU frame name")
-    lidar_frame: str = Field("", description="override the lidar frame name")
+
+class TopicParams(ParamGroup):
+    """Topics that override the dataset profile's ('' = the profile's)."""
+
+    radar: str = Field("", description="radar PointCloud2 topic")
+    lidar: str = Field("", description="lidar PointCloud2 topic")
+    imu: str = Field("", description="sensor_msgs/Imu topic")
+    groundtruth: str = Field("", description="ground-truth pose topic")
+    odometry: str = Field("", description="an odometry topic to keep as bag_odometry.parquet")
+
+
+class FieldParams(ParamGroup):
+    """PointCloud2 field names and the Doppler convention that override the profile's."""
+
+    radar_doppler: str = Field("", description="field holding the radar Doppler velocity")
+    radar_intensity: str = Field("", description="field holding the radar intensity")
+    lidar_intensity: str = Field("", description="field holding the lidar intensity")
+    doppler_sign: float | None = Field(None, description="the Doppler sign factor (None: the profile's)")
+
+
+class FrameParams(ParamGroup):
+    """Frame names and extrinsics that override the profile's, tf's and the folder's calib files."""
+
+    base: str = Field("", description="base (body) frame name")
+    radar: str = Field("", description="radar frame name (when the messages' frame_id is empty)")
+    imu: str = Field("", description="IMU frame name")
+    lidar: str = Field("", description="lidar frame name")
     radar_extrinsic: list[float] = Field([], description="base <- radar: a list tx ty tz (m) qx qy qz qw; wins over "
                                                          "tf and the profile")
     imu_extrinsic: list[float] = Field([], description="base <- imu: a list tx ty tz (m) qx qy qz qw")
     lidar_extrinsic: list[float] = Field([], description="base <- lidar: a list tx ty tz (m) qx qy qz qw")
 
-    @field_validator("radar_extrinsic", "imu_extrinsic", "lidar_extrinsic")
-    @classmethod
-    def _seven(cls, v: list[float]) -> list[float]:
-        if v and (len(v) != 7 or not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-9):
-            raise ValueError("give 7 numbers: tx ty tz (m) and a non-zero quaternion qx qy qz qw")
-        return v
+    _check_extrinsics = field_validator("radar_extrinsic", "imu_extrinsic", "lidar_extrinsic")(_seven)
+
+
+class ClockParams(ParamGroup):
+    """Stamps: the clock of each stream, the radar's latency, ordering and gaps."""
+
+    time_source: TimeSource = Field(
+        "auto", description="'auto': line up streams whose header stamps are zero, constant or on another clock; "
+                            "'header': header stamps as they are; 'record': the log's record time")
+    tolerance_s: float = Field(1.0, gt=0, description="auto: header-record offsets further apart than this are "
+                                                      "different clocks, s")
+    sample: int = Field(50, ge=2, le=1_000_000, description="first messages per stream examined to choose the clock")
+    radar_latency_s: float = Field(0.0, ge=-0.5, le=0.5, description="radar stamp minus the time the scan measured "
+                                   "the scene (s), subtracted from every radar stamp: a radar stamped on arrival "
+                                   "(the TI sensors of ColoRadar) is late by its frame and processing time")
+    reorder_window: int = Field(16, ge=1, le=1_000_000,
+                                description="messages re-sorted by stamp per stream (out-of-order)")
+    radar_gap_warn_s: float = Field(1.0, gt=0, description="warn about a time without radar points longer than this, s")
+    max_gap_s: float = Field(5.0, gt=0, le=3600, description="longest time without radar points or IMU samples the "
+                             "odometry may dead-reckon through (s); a longer one stops ingest, naming its times")
+
+
+class IngestRerunParams(ParamGroup):
+    """What of the raw streams goes to the Rerun recording."""
+
+    radar_every: int = Field(1, ge=1, le=1_000_000, description="log every n-th raw radar scan")
+    lidar_every: int = Field(10, ge=1, le=1_000_000, description="log every n-th lidar scan")
+    lidar_points: int = Field(2000, ge=1, le=10_000_000, description="random points kept per logged lidar scan")
+    flush_scans: int = Field(500, ge=1, le=1_000_000, description="scans buffered before a Rerun send_columns")
+    seed: int = Field(0, description="seed of the lidar downsampling")
+
+
+class IngestParams(StageParams):
+    """Parameters of the `ingest` stage: the dataset profile, overrides of its topics, fields and frames, the
+    clocks, and what is recorded."""
+
+    dataset: str = Field("", description="dataset profile in data/datasets/ ('' = the sequence's dataset)")
+    batch_rows: int = Field(262_144, ge=1000, le=16_777_216, description="rows per Parquet row group (bounds memory)")
+    topics: TopicParams = Field(default_factory=TopicParams, description="topic overrides")
+    fields: FieldParams = Field(default_factory=FieldParams, description="field overrides")
+    frames: FrameParams = Field(default_factory=FrameParams, description="frame and extrinsic overrides")
+    clock: ClockParams = Field(default_factory=ClockParams, description="stamps and gaps")
+    rerun: IngestRerunParams = Field(default_factory=IngestRerunParams, description="the Rerun recording")
 
 
 def _file_digest(path: Path) -> str:
@@ -139,9 +170,9 @@ class IngestStage(Stage):
         p: IngestParams = ctx.params
         profile = load_profile(p.dataset or ctx.seq.dataset)
         path = ctx.seq.resolve_source()
-        topics = {s: getattr(p, f"{s}_topic") for s in ("radar", "lidar", "imu", "groundtruth", "odometry")}
-        fields = {"radar_doppler": p.radar_doppler_field, "radar_intensity": p.radar_intensity_field,
-                  "lidar_intensity": p.lidar_intensity_field}
+        topics = {s: getattr(p.topics, s) for s in ("radar", "lidar", "imu", "groundtruth", "odometry")}
+        fields = {"radar_doppler": p.fields.radar_doppler, "radar_intensity": p.fields.radar_intensity,
+                  "lidar_intensity": p.fields.lidar_intensity}
         src = open_source(path, profile, {k: v for k, v in topics.items() if v}, {k: v for k, v in fields.items() if v})
         ctx.stats["source"] = {"path": str(path), "form": src.form, "profile": profile.name, "streams": src.streams}
         for what in src.missing_optional:
@@ -154,19 +185,20 @@ class _Ingest:
 
     def __init__(self, ctx: StageContext, p: IngestParams, profile: DatasetProfile, src: Source, path: Path) -> None:
         self.ctx, self.p, self.profile, self.src, self.path = ctx, p, profile, src, path
-        self.sign = profile.radar.doppler_sign if p.doppler_sign is None else p.doppler_sign
+        self.sign = profile.radar.doppler_sign if p.fields.doppler_sign is None else p.fields.doppler_sign
         self.labels = LabelSidecar.find(path)
         self.stats = {s: StreamStats() for s in ("radar", "lidar", "imu", "groundtruth", "odometry")}
-        self.reorder = {s: ReorderBuffer(p.reorder_window) for s in ("radar", "lidar", "imu")}
+        self.reorder = {s: ReorderBuffer(p.clock.reorder_window) for s in ("radar", "lidar", "imu")}
         self.scan = {"radar": 0, "lidar": 0}
         self.frames: dict[str, str] = {}
         self.poses: dict[str, tuple[list[int], list[F64], list[str]]] = {
             "groundtruth": ([], [], []), "odometry": ([], [], [])}
         self.scan_times: dict[str, list[int]] = {"radar": [], "lidar": []}
-        self.rng = np.random.default_rng(p.seed)
+        self.rng = np.random.default_rng(p.rerun.seed)
         self.rr_buf: dict[str, list[Any]] = {"radar": [], "lidar": []}
         self.imu_buf: list[tuple[int, F64]] = []
-        self.clock: ClockPlan = plan_clocks(src.clock_samples(p.clock_sample), p.time_source, p.clock_tolerance_s)
+        self.clock: ClockPlan = plan_clocks(src.clock_samples(p.clock.sample), p.clock.time_source,
+                                                  p.clock.tolerance_s)
         #: radar: time of the last scan with points, empty scans since, and the gaps found (start, length, empties)
         self.last_points_t: int | None = None
         self.empty_since = 0
@@ -219,8 +251,8 @@ class _Ingest:
         if clock is not None:
             msg.t_ns = clock.time(msg.header_ns, msg.record_ns)
             msg.record_time = clock.use == "record" or (clock.use == "header" and msg.header_ns == 0)
-        if msg.stream == "radar" and self.p.radar_latency_s:
-            msg.t_ns -= round(self.p.radar_latency_s * NS)
+        if msg.stream == "radar" and self.p.clock.radar_latency_s:
+            msg.t_ns -= round(self.p.clock.radar_latency_s * NS)
         st.record_time_used += int(msg.record_time)
         if msg.frame and msg.stream not in self.frames:
             self.frames[msg.stream] = msg.frame.lstrip("/")
@@ -282,12 +314,12 @@ class _Ingest:
         self._buffer_rerun(msg.stream, scan, msg.t_ns, cols)
 
     def _track_gap(self, t_ns: int, n: int) -> None:
-        """Radar gaps: stretches longer than ``radar_gap_warn_s`` between scans with points."""
+        """Radar gaps: stretches longer than ``clock.radar_gap_warn_s`` between scans with points."""
         if n == 0:
             self.empty_since += 1
             return
         last = self.last_points_t
-        if last is not None and t_ns - last > self.p.radar_gap_warn_s * NS:
+        if last is not None and t_ns - last > self.p.clock.radar_gap_warn_s * NS:
             self.gaps.append((last, t_ns - last, self.empty_since))
         self.last_points_t = t_ns
         self.empty_since = 0
@@ -336,13 +368,13 @@ class _Ingest:
 
     # -- calibration -------------------------------------------------------------------------------------------
     def _frame(self, sensor: str) -> str:
-        """A sensor's frame name: --set ingest.<sensor>_frame, else the profile's [frames] entry when the
+        """A sensor's frame name: --set ingest.frames.<sensor>, else the profile's [frames] entry when the
         messages carry an empty frame_id, else the messages' frame_id ('' when there is none)."""
-        override = getattr(self.p, f"{sensor}_frame")
+        override = getattr(self.p.frames, sensor)
         return override or self.frames.get(sensor) or getattr(self.profile.frames, sensor)
 
     def _base_frame(self) -> str:
-        return self.p.base_frame or self.profile.frames.base or self._frame("imu") or self._frame("radar") or "base"
+        return self.p.frames.base or self.profile.frames.base or self._frame("imu") or self._frame("radar") or "base"
 
     def _calibration(self) -> dict[str, Any]:
         base = self._base_frame()
@@ -355,9 +387,9 @@ class _Ingest:
             frame = self._frame(sensor)
             frames[sensor] = frame
             T: F64 | None = None
-            override = getattr(self.p, f"{sensor}_extrinsic")
+            override = getattr(self.p.frames, f"{sensor}_extrinsic")
             if override:
-                T, sources[sensor] = pose_matrix(override[:3], override[3:]), f"--set ingest.{sensor}_extrinsic"
+                T, sources[sensor] = pose_matrix(override[:3], override[3:]), f"--set ingest.frames.{sensor}_extrinsic"
             elif sensor in self.src.calibration:
                 T, how = self.src.calibration[sensor]
                 sources[sensor] = f"file {how}"
@@ -378,7 +410,7 @@ class _Ingest:
                     self.ctx.warn(f"{self.path.name} {how} for {named} (topic {self.src.streams[sensor]}) and "
                                   f"profile '{self.profile.name}' gives no [extrinsics.{sensor}]: assuming base<-"
                                   f"{sensor} = identity; give it in a profile (pipeline profile new my_rig.toml) or "
-                                  f"with --set ingest.{sensor}_extrinsic=[tx,ty,tz,qx,qy,qz,qw]")
+                                  f"with --set ingest.frames.{sensor}_extrinsic=[tx,ty,tz,qx,qy,qz,qw]")
             out[f"base_from_{sensor}"] = np.round(T, 12).tolist()
         out["frames"] = frames
         out["sources"] = sources
@@ -388,14 +420,14 @@ class _Ingest:
     # -- Rerun -----------------------------------------------------------------------------------------------------
     def _buffer_rerun(self, stream: str, scan: int, t_ns: int, cols: dict[str, Any]) -> None:
         p = self.p
-        every = p.rerun_radar_every if stream == "radar" else p.rerun_lidar_every
+        every = p.rerun.radar_every if stream == "radar" else p.rerun.lidar_every
         if scan % every:
             return
         xyz = np.stack([cols["x"], cols["y"], cols["z"]], axis=1)
-        if stream == "lidar" and len(xyz) > p.rerun_lidar_points:
-            xyz = xyz[np.sort(self.rng.choice(len(xyz), p.rerun_lidar_points, replace=False))]
+        if stream == "lidar" and len(xyz) > p.rerun.lidar_points:
+            xyz = xyz[np.sort(self.rng.choice(len(xyz), p.rerun.lidar_points, replace=False))]
         self.rr_buf[stream].append((scan, t_ns, xyz))
-        if len(self.rr_buf[stream]) >= p.rerun_flush_scans:
+        if len(self.rr_buf[stream]) >= p.rerun.flush_scans:
             self._flush_rerun(stream)
 
     def _flush_rerun(self, stream: str) -> None:
@@ -437,7 +469,7 @@ class _Ingest:
                                                          radii=np.full(len(t), 0.08, np.float32)).partition(
                                  lengths=np.ones(len(t), np.int64)))
         for stream, entity in (("radar", "world/radar/raw"), ("lidar", "world/lidar")):
-            every = self.p.rerun_radar_every if stream == "radar" else self.p.rerun_lidar_every
+            every = self.p.rerun.radar_every if stream == "radar" else self.p.rerun.lidar_every
             times = np.asarray(self.scan_times[stream], dtype=np.int64)
             scans = np.arange(len(times))[::every]
             times = times[::every]
@@ -481,13 +513,14 @@ class _Ingest:
         if "radar" in self.src.streams and radar.points == 0:
             raise UserError(f"{self.path}: radar topic '{self.src.streams['radar']}': all {radar.messages} scan(s) are "
                             f"empty or hold only NaN/inf points ({radar.nonfinite_dropped} non-finite dropped); there "
-                            f"is nothing to run on: check the topic (--set ingest.radar_topic=TOPIC) and the recording")
+                            f"is nothing to run on: check the topic (--set ingest.topics.radar=TOPIC) and the "
+                            "recording")
         self._check_gaps()
 
     def _check_gaps(self) -> None:
-        """A stretch without radar points or IMU samples longer than ``max_gap_s`` (a clock jump, a pause, a
+        """A stretch without radar points or IMU samples longer than ``clock.max_gap_s`` (a clock jump, a pause, a
         dropout) is an error naming its times: the odometry would dead-reckon through it."""
-        limit = self.p.max_gap_s * NS
+        limit = self.p.clock.max_gap_s * NS
         found = [("radar points", a, d) for a, d, _e in self.gaps if d > limit]
         if self.imu_max_gap_ns > limit:
             found.append(("IMU samples", self.imu_max_gap_at, self.imu_max_gap_ns))
@@ -500,8 +533,9 @@ class _Ingest:
         raise UserError(
             f"{self.path}: no {what} for {length / NS:.1f} s, from {(start - t0) / NS:.1f} s to "
             f"{(start + length - t0) / NS:.1f} s into the log (stamps {start / NS:.3f} to {(start + length) / NS:.3f})"
-            f"{more}: a clock jump or a pause longer than the odometry can bridge (ingest.max_gap_s="
-            f"{self.p.max_gap_s:g} s); cut the log there (e.g. with `rosbag filter`) or raise ingest.max_gap_s")
+            f"{more}: a clock jump or a pause longer than the odometry can bridge (ingest.clock.max_gap_s="
+            f"{self.p.clock.max_gap_s:g} s); cut the log there (e.g. with `rosbag filter`) or raise "
+            "ingest.clock.max_gap_s")
 
 
     def _report_clocks_and_gaps(self) -> None:
@@ -509,14 +543,15 @@ class _Ingest:
         ctx.stats["clock"] = {"time_source": plan.source, "streams": plan.as_dict()}
         if plan.changed:
             if plan.source == "auto":
-                ctx.warn(f"{name}: streams on different clocks, lined up (ingest.time_source=auto): {plan.describe()}")
+                ctx.warn(f"{name}: streams on different clocks, lined up (ingest.clock.time_source=auto): "
+                         f"{plan.describe()}")
             elif plan.source == "header":
                 bad = [c for c in plan.streams.values() if c.problem]
                 if bad:
-                    ctx.warn(f"{name}: {'; '.join(f'{c.stream}: {c.problem}' for c in bad)} (ingest.time_source="
-                             f"header); --set ingest.time_source=auto lines the streams up")
+                    ctx.warn(f"{name}: {'; '.join(f'{c.stream}: {c.problem}' for c in bad)} (ingest.clock.time_source="
+                             f"header); --set ingest.clock.time_source=auto lines the streams up")
             else:
-                ctx.warn(f"{name}: every stream timed by the bag's record time (ingest.time_source=record): "
+                ctx.warn(f"{name}: every stream timed by the bag's record time (ingest.clock.time_source=record): "
                          f"{plan.describe()}")
         spans = {s: (st.first_t_ns, st.last_t_ns) for s, st in self.stats.items()
                  if st.first_t_ns is not None and st.last_t_ns is not None}
@@ -527,8 +562,8 @@ class _Ingest:
                 a, b = spans[s]
                 return f"{(a - t0) / NS:.1f}-{(b - t0) / NS:.1f} s"
 
-            fix = ("set ingest.time_source=record (the bag's record time for both)" if plan.source == "auto" else
-                   "set ingest.time_source=auto (lines up zero or foreign stamps) or record")
+            fix = ("set ingest.clock.time_source=record (the bag's record time for both)" if plan.source == "auto" else
+                   "set ingest.clock.time_source=auto (lines up zero or foreign stamps) or record")
             raise UserError(f"{self.path}: radar and IMU clocks never overlap (radar {rel('radar')}, IMU {rel('imu')}, "
                             f"time_source={plan.source}); {fix}")
         radar = self.stats["radar"]
@@ -540,11 +575,11 @@ class _Ingest:
         if radar.scans_without_points:
             ctx.warn(f"radar: {radar.scans_without_points} of {radar.messages} scan(s) hold no points "
                      f"({radar.empty_messages} published empty)")
-        for a, d, e in [g for g in self.gaps if g[1] <= self.p.max_gap_s * NS][:5]:
+        for a, d, e in [g for g in self.gaps if g[1] <= self.p.clock.max_gap_s * NS][:5]:
             ctx.warn(f"radar: no points for {d / NS:.2f} s from {(a - (radar.first_t_ns or a)) / NS:.2f} s into the "
                      f"radar stream (stamp {a / NS:.3f}, {e} empty scan(s)); odometry dead-reckons through it")
         if len(self.gaps) > 5:
-            ctx.warn(f"radar: {len(self.gaps) - 5} more gap(s) longer than {self.p.radar_gap_warn_s:g} s "
+            ctx.warn(f"radar: {len(self.gaps) - 5} more gap(s) longer than {self.p.clock.radar_gap_warn_s:g} s "
                      f"(all in the manifest: radar_gaps)")
 
 

@@ -1,7 +1,7 @@
 """`odometry` stage: radar-inertial odometry (EKF-RIO) at radar scan times.
 
 ``source = "ekf"`` fuses the IMU with the filter's Doppler ego-velocity (stages/odometry/ekf_rio.py);
-``source = "bag"`` takes the odometry topic the dataset profile (or ``ingest.odometry_topic``) names,
+``source = "bag"`` takes the odometry topic the dataset profile (or ``ingest.topics.odometry``) names,
 interpolated at the radar scan times. Either way the output is world <- base as SE(2) (x, y, yaw).
 
 Anchoring: the filter runs in its own gravity-aligned frame with zero initial yaw. With ``anchor =
@@ -150,7 +150,7 @@ class OdometryStage(Stage):
                     f"{int(valid.sum())} with a valid ego-velocity" if len(scan_t) else "no radar scans")
             raise UserError(f"{ctx.input('filter', 'ego_velocity.parquet')}: no scan with a valid ego-velocity "
                             f"inside the IMU time span ({span}; IMU {(imu_t[0] - t0) * 1e-9:.1f}-"
-                            f"{(imu_t[-1] - t0) * 1e-9:.1f} s); rerun ingest with --set ingest.time_source=auto "
+                            f"{(imu_t[-1] - t0) * 1e-9:.1f} s); rerun ingest with --set ingest.clock.time_source=auto "
                             f"(or record) to line the clocks up")
         self._report_ekf(ctx, res.stats, scan_t)
         ctx.stats["ekf"] = res.stats
@@ -203,7 +203,7 @@ class OdometryStage(Stage):
         path = ctx.input_dirs["ingest"] / "bag_odometry.parquet"
         if not path.exists():
             raise UserError(f"{path}: the log has no odometry topic; name one in the dataset profile or with "
-                            f"--set ingest.odometry_topic=TOPIC, or use --set odometry.source=ekf")
+                            f"--set ingest.topics.odometry=TOPIC, or use --set odometry.source=ekf")
         odo = read_artifact(path, "groundtruth")
         radar = read_artifact(ctx.input("ingest", "radar.parquet"), "radar", columns=["scan", "t_ns"])
         scans, first = np.unique(radar["scan"].to_numpy(), return_index=True)

@@ -18,8 +18,16 @@ from pydantic import Field
 
 from core.errors import UserError
 from core.fps_patches import Patches, make_patches
-from core.stage import Stage, StageContext, StageParams
+from core.stage import ParamGroup, Stage, StageContext, StageParams
 from schemas.io import read_artifact, write_artifact
+
+
+class OutlierParams(ParamGroup):
+    """Statistical outlier removal on the radar map before the patches (RMap Sec. III-B)."""
+
+    neighbors: int = Field(20, ge=0, le=1000, description="k of the k-NN distances (0 = off)")
+    std_ratio: float = Field(2.0, gt=0, description="drop radar points whose mean k-NN distance exceeds the map "
+                             "mean by this many standard deviations")
 
 
 class PatchesParams(StageParams):
@@ -29,14 +37,11 @@ class PatchesParams(StageParams):
                      "(4 at test, 16 for training)")
     n_radar: int = Field(2048, ge=1, le=1_048_576, description="radar points per patch (N_R)")
     n_lidar: int = Field(8192, ge=1, le=4_194_304, description="lidar points per patch (N_L)")
-    outlier_neighbors: int = Field(20, ge=0, le=1000,
-                                   description="statistical outlier removal on the radar map: k (0 = off)")
-    outlier_std_ratio: float = Field(2.0, gt=0, description="drop radar points whose mean k-NN distance exceeds "
-                                     "the map mean by this many standard deviations")
     norm_scale: float = Field(0.0, ge=0, description="normalisation scale (m); 0 = per patch, the radar patch's "
                               "largest distance from its seed")
     seed: int = Field(0, description="seed of the FPS start point and of the padding draws")
     rerun_patches: int = Field(8, ge=0, le=10_000, description="patches logged to Rerun")
+    outliers: OutlierParams = Field(default_factory=OutlierParams, description="outlier removal")
 
 
 class PatchesStage(Stage):
@@ -61,7 +66,7 @@ class PatchesStage(Stage):
                 raise UserError(f"{path}: the {kind} map is empty, no patches can be made; check the voxel stage's "
                                 "inputs (`pipeline status`)")
         res = make_patches(maps["radar"], maps["lidar"], a=p.a, n_radar=p.n_radar, n_lidar=p.n_lidar,
-                           outlier_neighbors=p.outlier_neighbors, outlier_std_ratio=p.outlier_std_ratio,
+                           outlier_neighbors=p.outliers.neighbors, outlier_std_ratio=p.outliers.std_ratio,
                            norm_scale=p.norm_scale, seed=p.seed)
         radar = maps["radar"][res.radar_inliers]
         t = len(res.seeds)

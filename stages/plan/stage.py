@@ -19,13 +19,43 @@ from pydantic import Field, model_validator
 
 from core.errors import UserError
 from core.map_field import MapField, field_from_posterior, grid_axes, strategy_cost
-from core.stage import Stage, StageContext, StageParams, blas_threads
+from core.stage import ParamGroup, Stage, StageContext, StageParams, blas_threads
 from schemas import read_artifact, write_artifact
 from stages.plan.astar import astar
 from stages.plan.refine import PlanProblem, refine, resample_polyline
 
 F64 = npt.NDArray[np.float64]
 STRATEGIES = ("greedy", "uncertainty")
+
+
+class AStarParams(ParamGroup):
+    """The A* search on a grid of the map's occupancy that gives the initial path."""
+
+    grid_spacing: float = Field(0.25, ge=0.01, description="spacing of the occupancy grid queried for A* (m)")
+    waypoint_spacing: float = Field(0.5, gt=0, description="spacing of the waypoints resampled from the A* path "
+                                    "(m); must not exceed objective.d_max")
+
+
+class ObjectiveParams(ParamGroup):
+    """The continuous refinement's cost and constraints (eqs. 34-35)."""
+
+    o_max: float = Field(0.6, gt=0, lt=1, description="occupancy bound o_max of eq. 34 (eq. 28 occupancy); "
+                         "grid cells above it are A* obstacles")
+    d_max: float = Field(1.0, gt=0, description="step bound d_max of eq. 34 (m)")
+    alpha: float = Field(1.0, ge=0, description="weight of the path length in eq. 34")
+    beta: float = Field(1.0, ge=0, description="weight of the map cost in eq. 34")
+    eps: float = Field(1e-3, gt=0, description="epsilon of the uncertainty-aware cost (eq. 35)")
+    domain_margin: float = Field(0.5, ge=0, description="distance kept from the Hilbert domain's edge (m): the "
+                                 "domain bound Omega of eq. 34")
+
+
+class SolverParams(ParamGroup):
+    """SLSQP."""
+
+    max_iter: int = Field(300, ge=1, le=1_000_000, description="SLSQP iteration limit")
+    blas_threads: int = Field(1, ge=0, le=256,
+                              description="BLAS threads while planning (0: leave the library's default); "
+                              "the matrices are small, and a multi-threaded BLAS on a busy machine spins")
 
 
 class PlanParams(StageParams):
@@ -37,21 +67,9 @@ class PlanParams(StageParams):
                                      "pose farthest from the start")
     strategies: list[Literal["greedy", "uncertainty"]] = Field(
         ["greedy", "uncertainty"], description="cost strategies of eq. 35 to plan with")
-    grid_spacing: float = Field(0.25, ge=0.01, description="spacing of the occupancy grid queried for A* (m)")
-    o_max: float = Field(0.6, gt=0, lt=1, description="occupancy bound o_max of eq. 34 (eq. 28 occupancy); "
-                         "grid cells above it are A* obstacles")
-    d_max: float = Field(1.0, gt=0, description="step bound d_max of eq. 34 (m)")
-    waypoint_spacing: float = Field(0.5, gt=0, description="spacing of the waypoints resampled from the A* path "
-                                    "(m); must not exceed d_max")
-    alpha: float = Field(1.0, ge=0, description="weight of the path length in eq. 34")
-    beta: float = Field(1.0, ge=0, description="weight of the map cost in eq. 34")
-    eps: float = Field(1e-3, gt=0, description="epsilon of the uncertainty-aware cost (eq. 35)")
-    domain_margin: float = Field(0.5, ge=0, description="distance kept from the Hilbert domain's edge (m): the "
-                                 "domain bound Omega of eq. 34")
-    max_iter: int = Field(300, ge=1, le=1_000_000, description="SLSQP iteration limit")
-    blas_threads: int = Field(1, ge=0, le=256,
-                              description="BLAS threads while planning (0: leave the library's default); "
-                              "the matrices are small, and a multi-threaded BLAS on a busy machine spins")
+    astar: AStarParams = Field(default_factory=AStarParams, description="the initial path")
+    objective: ObjectiveParams = Field(default_factory=ObjectiveParams, description="eqs. 34-35")
+    solver: SolverParams = Field(default_factory=SolverParams, description="the refinement's solver")
 
     @model_validator(mode="after")
     def _check(self) -> PlanParams:
@@ -59,8 +77,9 @@ class PlanParams(StageParams):
             v = getattr(self, name)
             if v is not None and len(v) != 2:
                 raise ValueError(f"{name} must be [x, y]")
-        if self.waypoint_spacing > self.d_max:
-            raise ValueError(f"waypoint_spacing {self.waypoint_spacing} exceeds d_max {self.d_max}")
+        if self.astar.waypoint_spacing > self.objective.d_max:
+            raise ValueError(f"astar.waypoint_spacing {self.astar.waypoint_spacing} exceeds objective.d_max "
+                             f"{self.objective.d_max}")
         return self
 
 
@@ -90,25 +109,27 @@ class PlanStage(Stage):
     outputs = ("paths.parquet",)
 
     def run(self, ctx: StageContext) -> None:
-        with blas_threads(ctx.params.blas_threads):
+        with blas_threads(ctx.params.solver.blas_threads):
             self._run(ctx)
 
     def _run(self, ctx: StageContext) -> None:
         p: PlanParams = ctx.params
+        obj = p.objective
         field = field_from_posterior(read_artifact(ctx.input("slam", "map_posterior.parquet"), "map_posterior"))
-        lo = field.lo + p.domain_margin
-        hi = field.hi - p.domain_margin
-        if np.any(hi - lo <= 2 * p.grid_spacing):
-            raise UserError(f"plan.domain_margin={p.domain_margin}: leaves no room inside the Hilbert domain "
+        lo = field.lo + p.objective.domain_margin
+        hi = field.hi - p.objective.domain_margin
+        if np.any(hi - lo <= 2 * p.astar.grid_spacing):
+            raise UserError(f"plan.objective.domain_margin={obj.domain_margin}: leaves no room inside the Hilbert "
+                            f"domain "
                             f"{field.lo.round(2).tolist()}..{field.hi.round(2).tolist()}")
         t0 = time.perf_counter()
-        gx, gy = grid_axes(lo, hi, p.grid_spacing)
+        gx, gy = grid_axes(lo, hi, p.astar.grid_spacing)
         pts = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
         vals = field.values(pts, gradients=False)
         shape = (len(gx), len(gy))
         occ = vals.o.reshape(shape)
-        blocked = occ > p.o_max
-        ctx.stats["grid"] = {"cells": int(blocked.size), "blocked": int(blocked.sum()), "spacing": p.grid_spacing}
+        blocked = occ > p.objective.o_max
+        ctx.stats["grid"] = {"cells": int(blocked.size), "blocked": int(blocked.sum()), "spacing": p.astar.grid_spacing}
 
         start, goal = self._endpoints(ctx, p)
         cells = {}
@@ -120,9 +141,9 @@ class PlanStage(Stage):
             if blocked[c]:
                 free = nearest_free(blocked, c)
                 if free is None:
-                    raise UserError(f"plan.o_max={p.o_max}: every grid cell is an obstacle; raise o_max")
+                    raise UserError(f"plan.objective.o_max={obj.o_max}: every grid cell is an obstacle; raise it")
                 ctx.warn(f"{name} {np.round(xy, 2).tolist()} lies in an obstacle cell (occupancy "
-                         f"{occ[c]:.2f} > o_max {p.o_max}); moved to the nearest free cell")
+                         f"{occ[c]:.2f} > o_max {p.objective.o_max}); moved to the nearest free cell")
                 c = free
                 xy = np.array([gx[c[0]], gy[c[1]]])
             cells[name] = (c, np.asarray(xy, np.float64))
@@ -131,24 +152,24 @@ class PlanStage(Stage):
         rows: dict[str, list[Any]] = {"strategy": [], "k": [], "x": [], "y": [], "z_hat": [], "u": [], "occupancy": []}
         paths: dict[str, F64] = {}
         for strategy in p.strategies:
-            cs, _ = strategy_cost(vals, strategy, p.eps)
+            cs, _ = strategy_cost(vals, strategy, p.objective.eps)
             cgrid = cs.reshape(shape)
             # eq. 34 per unit length: alpha + beta c / waypoint_spacing; shift so that every cell is >= 0
             shifted = cgrid - cgrid[~blocked].min()
-            cell_cost = shifted * (p.beta / p.alpha / p.waypoint_spacing) if p.alpha > 0 else shifted
+            cell_cost = shifted * (obj.beta / obj.alpha / p.astar.waypoint_spacing) if obj.alpha > 0 else shifted
             ts = time.perf_counter()
             cell_path, _ = astar(blocked, cells["start"][0], cells["goal"][0], cell_cost)
             if not cell_path:
                 raise UserError(f"plan: no collision-free path from {cells['start'][1].round(2).tolist()} to "
-                                f"{cells['goal'][1].round(2).tolist()} with o_max={p.o_max}; raise plan.o_max "
-                                "or choose other plan.start / plan.goal")
+                                f"{cells['goal'][1].round(2).tolist()} with o_max={obj.o_max}; raise "
+                                "plan.objective.o_max or choose other plan.start / plan.goal")
             idx = np.asarray(cell_path)
             poly = np.stack([gx[idx[:, 0]], gy[idx[:, 1]]], 1)
             poly[0], poly[-1] = cells["start"][1], cells["goal"][1]
-            init = resample_polyline(poly, p.waypoint_spacing)
+            init = resample_polyline(poly, p.astar.waypoint_spacing)
             t_astar = time.perf_counter() - ts
-            prob = PlanProblem(field, strategy, p.alpha, p.beta, p.eps, p.d_max, p.o_max, lo, hi)
-            res = refine(prob, init, max_iter=p.max_iter)
+            prob = PlanProblem(field, strategy, obj.alpha, obj.beta, obj.eps, obj.d_max, obj.o_max, lo, hi)
+            res = refine(prob, init, max_iter=p.solver.max_iter)
             paths[f"astar_{strategy}"] = init
             paths[strategy] = res.path
             ctx.stats[strategy] = {
@@ -178,7 +199,7 @@ class PlanStage(Stage):
         u_prior = _prior_variance(field, pts)
         norm_u = (vals.u / np.maximum(u_prior, 1e-300)).reshape(shape)
         plot_plan(ctx.output("plan.png"), gx, gy, occ, norm_u, paths, cells["start"][1], cells["goal"][1],
-                  title=f"{ctx.seq.name}: planning on the Hilbert map (o_max {p.o_max})")
+                  title=f"{ctx.seq.name}: planning on the Hilbert map (o_max {p.objective.o_max})")
         self._log(ctx, paths)
 
     def _endpoints(self, ctx: StageContext, p: PlanParams) -> tuple[F64, F64]:
