@@ -35,6 +35,7 @@ Table III on the authors' published maps (``shared/data/coloradar_maps/README.md
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 
 import numpy as np
@@ -169,6 +170,35 @@ def lr_ratio(lidar: npt.ArrayLike | int, radar: npt.ArrayLike | int) -> float:
     n_l = lidar if isinstance(lidar, int) else len(np.asarray(lidar))
     n_r = radar if isinstance(radar, int) else len(np.asarray(radar))
     return float(n_l) / n_r if n_r else float("nan")
+
+
+#: edges (m) of the bins of horizontal distance from the path; the last bin is everything beyond the last edge
+PATH_BINS_M = (0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0)
+
+
+def path_bin_names(edges: Sequence[float] = PATH_BINS_M) -> list[str]:
+    """``0-1m``, ..., ``6-7m``, ``>7m``: the bins of :func:`recall_by_path_distance`."""
+    return [f"{lo:g}-{hi:g}m" for lo, hi in itertools.pairwise(edges)] + [f">{edges[-1]:g}m"]
+
+
+def recall_by_path_distance(cmp: MapComparison, path: npt.ArrayLike, d: float = 0.15,
+                            edges: Sequence[float] = PATH_BINS_M) -> dict[str, float]:
+    """Recall (the paper's strict ``dist < d``) of the ground-truth points binned by their horizontal distance
+    to the nearest point of ``path (P, 2 or 3)``: ``recall_path_<bin>`` and the bin's point count
+    ``n_gt_path_<bin>`` (for pooling over scenes); a bin without points has recall nan."""
+    p = np.asarray(path, np.float64)
+    if p.size == 0 or len(cmp.gt) == 0:
+        return {}
+    p = p.reshape(len(p), -1)[:, :2]
+    dist, _ = cKDTree(p).query(cmp.gt[:, :2], k=1, workers=-1)
+    hit = cmp.d_gp < d
+    bins = np.digitize(dist, np.asarray(edges[1:]))  # 0 .. len(edges) - 1
+    out: dict[str, float] = {}
+    for b, name in enumerate(path_bin_names(edges)):
+        m = bins == b
+        out[f"recall_path_{name}"] = float(hit[m].mean()) if m.any() else float("nan")
+        out[f"n_gt_path_{name}"] = float(m.sum())
+    return out
 
 
 def map_metrics(pred: npt.ArrayLike, gt: npt.ArrayLike, d: float = 0.15) -> dict[str, float]:

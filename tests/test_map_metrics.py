@@ -93,3 +93,44 @@ def test_random_sizes_match_brute_force(n_p: int, n_g: int, seed: int) -> None:
     p, r = np.mean(b["d_pg"] < 0.5), np.mean(b["d_gp"] < 0.5)
     f = 2 * p * r / (p + r) if p + r else 0.0
     assert m["fscore_0.5"] == pytest.approx(f, abs=1e-12)
+
+
+def test_recall_by_path_distance_against_brute_force() -> None:
+    """Each lidar point's bin by its horizontal distance to the nearest path point, the recall in the bin by the
+    strict ``dist < d`` to the nearest prediction, both by brute force."""
+    from core.map_metrics import MapComparison, path_bin_names, recall_by_path_distance
+
+    rng = np.random.default_rng(4)
+    gt = np.column_stack([rng.uniform(-10, 10, (400, 2)), rng.uniform(0, 3, 400)])
+    pred = np.concatenate([gt[:150] + 0.01, rng.uniform(-10, 10, (50, 3))])
+    path = np.column_stack([np.linspace(-9, 9, 40), np.zeros(40), np.full(40, 5.0)])  # z is ignored
+    got = recall_by_path_distance(MapComparison(pred, gt), path, 0.15)
+    d_path = np.min(np.hypot(*(gt[:, None, :2] - path[None, :, :2]).transpose(2, 0, 1)), axis=1)
+    d_pred = np.min(np.linalg.norm(gt[:, None] - pred[None], axis=2), axis=1)
+    edges = [0, 1, 2, 3, 4, 5, 6, 7, np.inf]
+    for name, lo, hi in zip(path_bin_names(), edges[:-1], edges[1:], strict=True):
+        m = (d_path >= lo) & (d_path < hi)
+        assert got[f"n_gt_path_{name}"] == m.sum()
+        if m.any():
+            assert got[f"recall_path_{name}"] == pytest.approx(np.mean(d_pred[m] < 0.15))
+        else:
+            assert np.isnan(got[f"recall_path_{name}"])
+    assert sum(got[f"n_gt_path_{n}"] for n in path_bin_names()) == len(gt)
+    assert recall_by_path_distance(MapComparison(pred, gt), np.zeros((0, 3))) == {}
+
+
+def test_recall_table_pools_hits_over_sequences() -> None:
+    from stages.evaluate.recall_distance import pooled_recall, recall_table
+
+    recs = [{"seq": "a", "method": "radar_map", "metric": "recall_path_0-1m", "value": 0.5},
+            {"seq": "a", "method": "radar_map", "metric": "n_gt_path_0-1m", "value": 10},
+            {"seq": "b", "method": "radar_map", "metric": "recall_path_0-1m", "value": 1.0},
+            {"seq": "b", "method": "radar_map", "metric": "n_gt_path_0-1m", "value": 30},
+            {"seq": "b", "method": "radar_map", "metric": "recall_path_>7m", "value": 0.2},
+            {"seq": "b", "method": "radar_map", "metric": "n_gt_path_>7m", "value": 10}]
+    assert pooled_recall(recs)["radar_map"]["0-1m"] == (pytest.approx((5 + 30) / 40), 40)
+    title, head, rows = recall_table(recs)
+    assert "2 sequence(s)" in title and head[1] == "0-1m" and head[-1] == ">=5m"
+    assert rows[0][0] == "radar_map" and rows[0][-1] == "0.200"  # the far field: the >7 m bin alone here
+    assert rows[-1][0] == "(share of lidar points)" and rows[-1][1] == "0.800"
+    assert recall_table([]) is None

@@ -20,7 +20,7 @@ from stages.slam.pose_graph import (
     select_keyframes,
     transform,
 )
-from stages.slam.registration import MatcherModel, match
+from stages.slam.registration import DISTINCT_M, MatcherModel, distinct_margin, match, placement_rms
 from stages.slam.synthetic import box_walls, corridor_world, make_run
 
 gtsam = pytest.importorskip("gtsam")
@@ -110,6 +110,36 @@ def test_the_odometry_prior_picks_the_match_it_allows_over_an_aliased_one() -> N
     far = match(ref, query, np.array([0.2, 0.0, 0.0]), MatcherModel(), 3.0, 5.0, prior_cov=prior)
     assert abs(far.pose[0] - 0.0) < 0.15  # the prior decides which period, not the likelihood
     assert np.all(np.linalg.eigvalsh(near.cov) > 0)
+
+
+def test_the_margin_measures_how_much_better_the_match_is_than_another_place() -> None:
+    """In the corridor with doors every 4 m the search window around the true pose holds the copy one door away:
+    the margin over a candidate that places the cloud 1 m elsewhere is near zero without a prior; a room with a
+    box in it is unique (a large margin); the placements' distances and the margin against brute force."""
+    walls = []
+    for x0 in np.arange(-20.0, 20.0, 4.0):
+        walls += [box_walls(x0, -1.0, x0 + 3.0, -1.0001), box_walls(x0, 1.0, x0 + 3.0, 1.0001)]
+    ref = _wall_points(np.concatenate(walls))
+    query = ref[np.abs(ref[:, 0] - 4.0) < 6.0] - np.array([4.0, 0.0])
+    aliased = match(ref, query, np.array([4.0, 0.0, 0.0]), MatcherModel(), 4.5, 5.0)
+    assert aliased.margin < 1.0
+    room = _wall_points(np.concatenate([box_walls(-5.0, -3.0, 5.0, 3.0), box_walls(1.0, -1.0, 2.0, 0.5)]))
+    unique = match(room, room - np.array([0.5, 0.2]), np.array([0.5, 0.2, 0.0]), MatcherModel(), 2.0, 10.0)
+    assert unique.margin > 10.0 and np.allclose(unique.pose[:2], [0.5, 0.2], atol=0.1)
+
+    rng = np.random.default_rng(0)
+    rank, q = rng.normal(size=(5, 7, 7)), rng.normal(2.0, 1.5, size=(30, 2))
+    yaws, offs = np.radians(np.arange(-2, 3) * 8.0), np.arange(-3, 4) * 0.4
+    a, i, j = np.unravel_index(np.argmax(rank), rank.shape)
+
+    def placed(b: int, x: int, y: int) -> np.ndarray:
+        c, s = np.cos(yaws[b]), np.sin(yaws[b])
+        return q @ np.array([[c, s], [-s, c]]) + np.array([offs[x], offs[y]])
+
+    rms = np.array([[[np.sqrt(np.mean(np.sum((placed(b, x, y) - placed(a, i, j)) ** 2, axis=1)))
+                      for y in range(7)] for x in range(7)] for b in range(5)])
+    assert np.allclose(placement_rms(q, yaws, offs, a, i, j), rms)
+    assert distinct_margin(rank, yaws, offs, q) == pytest.approx(rank.max() - rank[rms >= DISTINCT_M].max())
 
 
 def test_pairwise_consistency_keeps_the_consistent_closures_and_drops_the_odd_one() -> None:

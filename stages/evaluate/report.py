@@ -58,7 +58,10 @@ def build_tables(records: Sequence[dict[str, Any]],
             out.append((title, headers, rows))
     out += [(t.title, list(t.headers), [list(map(str, row)) for row in t.rows])
             for t in map_set_tables(records, sequences or {})]
-    return out
+    from stages.evaluate.recall_distance import recall_table
+
+    recall = recall_table(records)
+    return out + ([recall] if recall is not None else [])
 
 
 def map_set_results(records: Sequence[Mapping[str, Any]], sequences: Mapping[str, Mapping[str, Any]]) -> list[Any]:
@@ -127,7 +130,8 @@ def write_figures(records: Sequence[dict[str, Any]], out: Path, curves: Mapping[
     """Figures across sequences beside ``out``: Fig. 6 (AUC per feature count, one panel per sequence),
     Fig. 10 right (the slam map's median and 25-75 % uncertainty over time, one curve per sequence) and, with
     ``runs_dir``, RMap's top views (``<out>_top.png``: input, UpPoinTr, voxel U-Net and lidar maps when both
-    models ran) of the figure's scenes among the records (``rmap_results.FIGURE_SEQS``)."""
+    models ran) of the figure's scenes among the records (``rmap_results.FIGURE_SEQS``), and the maps' recall by
+    distance from the path (``<out>_recall.png``)."""
     seqs = list(dict.fromkeys(str(r["seq"]) for r in records))
     written = []
     if runs_dir is not None:
@@ -137,6 +141,11 @@ def write_figures(records: Sequence[dict[str, Any]], out: Path, curves: Mapping[
         if shown:
             top = plot_run_top_views(runs_dir, out.with_name(out.stem + "_top.png"), shown)
             written += [top] if top is not None else []
+    from stages.evaluate.recall_distance import plot_recall_by_distance
+
+    recall = plot_recall_by_distance(out.with_name(out.stem + "_recall.png"), records,
+                                     f"Recall by distance from the path, pooled over {len(seqs)} sequence(s)")
+    written += [recall] if recall is not None else []
     with_auc = [s for s in seqs if any(r["seq"] == s and r["metric"] == "auc" and "@" in str(r["method"])
                                        for r in records)]
     if with_auc:

@@ -472,7 +472,7 @@ class Evaluation:
 
     # -- RMap (Tables I, III, IV) -----------------------------------------------------------------------------------
     def _rmap(self, ctx: StageContext) -> None:
-        from core.map_metrics import lr_ratio, map_metrics
+        from core.map_metrics import MapComparison, comparison_metrics, lr_ratio, recall_by_path_distance
 
         p: EvaluateParams = ctx.params
 
@@ -497,9 +497,13 @@ class Evaluation:
         for model, fname in per_model.items():  # the other models of complete.models, each its own method
             if fname != "completed_map.parquet":
                 maps[f"completed_map_{model}"] = cloud("complete", fname, "completed_map")
+        path = (cloud("voxel", "map_trajectory.parquet", "map_trajectory")
+                if (ctx.input_dirs["voxel"] / "map_trajectory.parquet").exists() else np.zeros((0, 3)))
         scored: dict[str, dict[str, float]] = {}
         for name, pts in maps.items():
-            scored[name] = {**map_metrics(pts, lidar, p.fscore_threshold), "lr_ratio": lr_ratio(len(lidar), len(pts))}
+            cmp = MapComparison(pts, lidar)
+            scored[name] = {**comparison_metrics(cmp, p.fscore_threshold), "lr_ratio": lr_ratio(len(lidar), len(pts)),
+                            **recall_by_path_distance(cmp, path, p.fscore_threshold)}
         for model, fname in per_model.items():  # the configured model: the rows of completed_map, not scored twice
             if fname == "completed_map.parquet":
                 scored[f"completed_map_{model}"] = dict(scored["completed_map"])

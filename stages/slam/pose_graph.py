@@ -222,7 +222,7 @@ def loop_closures(poses: F64, clouds: list[F64], model: GraphParams,
         prior = None if odometry is None else chain_prior(odometry, j, k, model.bias_sigma0)
         m = match(ref, q, between(poses[j], poses[k]), matcher, model.loop_radius, model.loop_search_yaw,
                   prior_cov=prior)
-        if m.inliers < model.loop_min_inliers:
+        if m.inliers < model.loop_min_inliers or m.margin < model.loop_min_margin:
             continue
         out.append(Edge("loop", j, k, m.pose, world_cov_to_body(m.pose, m.cov), m.inliers))
         last_closed = k
@@ -461,12 +461,25 @@ def optimise_graph(odometry: F64, cov: F64, t_s: F64, endpoints: Sequence[F64], 
     clouds = keyframe_clouds(odometry, endpoints, keyframes, matcher_of(model).resolution)
     odo = odometry_edges(odometry, cov, keyframes, np.asarray(t_s, np.float64))
     poses = odometry[keyframes]
-    loops = loop_closures(poses, clouds, model, odo)
-    clique = set(largest_consistent_set(pairwise_consistent(loops, odo, poses, model.bias_sigma0)))
-    inconsistent = [replace(e, accepted=False) for k, e in enumerate(loops) if k not in clique]
-    edges = [*odo, *(e for k, e in enumerate(loops) if k in clique)]
-    opt, kcov, kept, bias = optimise(poses, edges, "gnc", model.bias_sigma0, model.bias_walk)
-    edges = [*(replace(e, accepted=k) for e, k in zip(edges, kept, strict=True)), *inconsistent]
+    current: F64 = poses
+    result = None
+    for _ in range(model.loop_rounds):  # each round proposes from the poses the one before optimised
+        loops = loop_closures(current, clouds, model, odo)
+        clique = set(largest_consistent_set(pairwise_consistent(loops, odo, poses, model.bias_sigma0)))
+        inconsistent = [replace(e, accepted=False) for k, e in enumerate(loops) if k not in clique]
+        edges = [*odo, *(e for k, e in enumerate(loops) if k in clique)]
+        opt, kcov, kept, bias = optimise(poses, edges, "gnc", model.bias_sigma0, model.bias_walk)
+        edges = [*(replace(e, accepted=k) for e, k in zip(edges, kept, strict=True)), *inconsistent]
+        now = {(e.i, e.j) for e in edges if e.kind == "loop" and e.accepted}
+        before = None if result is None else {(e.i, e.j) for e in result[4] if e.kind == "loop" and e.accepted}
+        if result is not None and not now:  # a later round that keeps nothing leaves the earlier solution
+            break
+        result = (opt, kcov, kept, bias, edges, loops, inconsistent)
+        if now == before or not now:
+            break
+        current = opt
+    assert result is not None
+    opt, kcov, kept, bias, edges, loops, inconsistent = result
     rejected = sum(e.kind == "loop" and not e.accepted for e in edges)
     if rejected:
         warnings.append(f"{len(inconsistent)} of {len(loops)} loop closures disagree with the largest mutually "
