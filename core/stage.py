@@ -27,7 +27,6 @@ from core.errors import UserError
 
 if TYPE_CHECKING:
     from core.recording import StageRecording
-    from pipeline.sequences import SequenceInfo
 
 
 #: a report table: (title, headers, rows of cells)
@@ -171,7 +170,7 @@ class Stage(ABC):
     #: published voxel maps); the runner skips the stage, and everything that needs it, when it does not
     needs: ClassVar[frozenset[str]] = frozenset()
 
-    def skip_reason(self, seq: SequenceInfo, params: StageParams) -> str | None:
+    def skip_reason(self, seq: Any, params: StageParams) -> str | None:
         """Why this stage cannot run for ``seq`` at all (one line), or None. Known before anything runs
         (the source kind, the parameters); the default checks :attr:`needs` against the source."""
         missing = sorted(self.needs - seq.provides)
@@ -179,7 +178,7 @@ class Stage(ABC):
             return f"'{seq.name}' is a {seq.kind_label}, it has no {' or '.join(missing)}"
         return None
 
-    def skip_reason_for_inputs(self, seq: SequenceInfo, params: StageParams,
+    def skip_reason_for_inputs(self, seq: Any, params: StageParams,
                                input_dirs: Mapping[str, Path]) -> str | None:
         """Why this stage cannot run on what its inputs hold (one line, e.g. "the log has no lidar"), or
         None. Called once every input is finished, before the stage would run or be taken from the cache."""
@@ -193,11 +192,11 @@ class Stage(ABC):
         """Stages used when they can run for the sequence, for these parameters."""
         return self.optional_inputs
 
-    def key_material(self, seq: SequenceInfo, params: StageParams) -> dict[str, Any]:
+    def key_material(self, seq: Any, params: StageParams) -> dict[str, Any]:
         """Extra values that enter the cache key (e.g. the fingerprint of a source bag)."""
         return {}
 
-    def memory_estimate(self, seq: SequenceInfo, params: StageParams,
+    def memory_estimate(self, seq: Any, params: StageParams,
                         input_dirs: Mapping[str, Path]) -> tuple[int, str] | None:
         """Peak bytes the stage will hold for these parameters and finished inputs, with the parameters that set
         it (``"slam.n_particles=200 x slam.map.n_basis=256^2"``); None when it is small or not modelled. The runner
@@ -251,7 +250,7 @@ class StageContext:
     """Everything a running stage may touch."""
 
     stage: str
-    seq: SequenceInfo
+    seq: Any  # the sequence record, sources.sequence.SequenceInfo (core stands below sources)
     params: Any
     out_dir: Path
     input_dirs: dict[str, Path]

@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 
 
 class SimulatedSpec(Protocol):
-    """What :func:`generate_sequence` reads of a registered simulated sequence (``pipeline.sequences.SequenceInfo``
+    """What :func:`generate_sequence` reads of a registered simulated sequence (``sources.sequence.SequenceInfo``
     satisfies it; the simulator does not import the registry, so the two layers stay acyclic)."""
 
     @property

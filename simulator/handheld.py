@@ -30,8 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from simulator.params import _Params
 from simulator.rig import Extrinsic
-from simulator.trajectory import YAW_OFFSET, Trajectory, TrajectoryState
-from simulator.world import TrajectorySpec
+from simulator.trajectory import YAW_OFFSET, Trajectory, TrajectorySpec, TrajectoryState
 
 IMU_FRAME = "imu_link"
 RADAR_FRAME_NAME = "ti_mmwave"  # the radar's frame in the extrinsic; the messages' frame_id is empty

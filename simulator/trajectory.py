@@ -12,18 +12,40 @@ the path heading minus 90 degrees and the radar (boresight along base +y) looks 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 from scipy.integrate import cumulative_simpson
 from scipy.interpolate import CubicHermiteSpline, CubicSpline
 from scipy.spatial.transform import Rotation
 
-if TYPE_CHECKING:  # type only: world.py imports this module at run time
-    from simulator.world import TrajectorySpec
-
 #: base yaw = path heading + YAW_OFFSET (the rig's forward axis is base +y)
 YAW_OFFSET = -np.pi / 2
+
+
+class TrajectorySpec(BaseModel):
+    """A smooth closed loop through the waypoints, driven with a smooth speed profile (a world's
+    ``[trajectory]`` table)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    waypoints: list[tuple[float, float]] = Field(description="closed loop of [x, y] waypoints, visited in order")
+    height: float = Field(1.1, description="mean height of the base frame above the floor, metres")
+    height_amplitude: float = Field(0.04, ge=0.0, le=0.3, description="amplitude of the slow height change, metres")
+    height_period: float = Field(9.0, gt=0.5, description="period of the height change, seconds")
+    speed: float = Field(1.0, gt=0.05, le=3.0, description="mean speed along the path, m/s")
+    speed_variation: float = Field(0.2, ge=0.0, lt=0.9, description="relative amplitude of the speed modulation")
+    speed_period: float = Field(13.0, gt=0.5, description="period of the speed modulation, seconds")
+    start_ramp: float = Field(2.0, ge=0.0, description="seconds to accelerate smoothly from rest")
+    start_offset: float = Field(0.0, ge=0.0, description="arc length along the loop where the run starts, metres")
+    reverse: bool = Field(False, description="drive the loop in the reverse waypoint order")
+
+    @field_validator("waypoints")
+    @classmethod
+    def _enough(cls, v: list[tuple[float, float]]) -> list[tuple[float, float]]:
+        if len(v) < 3:
+            raise ValueError("a trajectory loop needs at least three waypoints")
+        return v
 
 
 class LoopPath:

@@ -29,9 +29,10 @@ from core.paths import data_dir
 from simulator.params import ImuParams, RadarParams, make_params
 from simulator.path_trajectory import PathParams, PathTrajectory
 from simulator.sensor_errors import SensorErrors
+from simulator.trajectory import TrajectorySpec
 from simulator.voxel_scatterers import VoxelScatterers, VoxelScatterParams, build_voxel_scatterers
 from simulator.voxel_world import VoxelGrid, grid_from_points, voxel_scene
-from simulator.world import TrajectorySpec, World, WorldSpec
+from simulator.world import World, WorldSpec
 
 #: run lengths of RICH-SLAM Table III's ColoRadar sequences 1-6 (seconds, the paper's durations); a twin's
 #: recorded samples are spread uniformly over them

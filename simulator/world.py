@@ -23,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from core.errors import UserError
 from core.paths import data_dir
+from simulator.trajectory import LoopPath, TrajectorySpec
 
 
 class Material(BaseModel):
@@ -81,28 +82,6 @@ class Pillar(_Strict):
     radius: float = Field(gt=0.0, description="radius in metres")
     z: tuple[float, float] | None = Field(None, description="bottom and top height (default: floor to ceiling)")
     material: str = Field("concrete", description="a material name")
-
-
-class TrajectorySpec(_Strict):
-    """A smooth closed loop through the waypoints, driven with a smooth speed profile."""
-
-    waypoints: list[tuple[float, float]] = Field(description="closed loop of [x, y] waypoints, visited in order")
-    height: float = Field(1.1, description="mean height of the base frame above the floor, metres")
-    height_amplitude: float = Field(0.04, ge=0.0, le=0.3, description="amplitude of the slow height change, metres")
-    height_period: float = Field(9.0, gt=0.5, description="period of the height change, seconds")
-    speed: float = Field(1.0, gt=0.05, le=3.0, description="mean speed along the path, m/s")
-    speed_variation: float = Field(0.2, ge=0.0, lt=0.9, description="relative amplitude of the speed modulation")
-    speed_period: float = Field(13.0, gt=0.5, description="period of the speed modulation, seconds")
-    start_ramp: float = Field(2.0, ge=0.0, description="seconds to accelerate smoothly from rest")
-    start_offset: float = Field(0.0, ge=0.0, description="arc length along the loop where the run starts, metres")
-    reverse: bool = Field(False, description="drive the loop in the reverse waypoint order")
-
-    @field_validator("waypoints")
-    @classmethod
-    def _enough(cls, v: list[tuple[float, float]]) -> list[tuple[float, float]]:
-        if len(v) < 3:
-            raise ValueError("a trajectory loop needs at least three waypoints")
-        return v
 
 
 class WorldSpec(_Strict):
@@ -329,8 +308,6 @@ def distance_to_obstacles_2d(scene: Scene, pts: np.ndarray) -> np.ndarray:
 
 def path_clearance(spec: WorldSpec, scene: Scene) -> float:
     """Smallest horizontal distance between the trajectory loop and any obstacle."""
-    from simulator.trajectory import LoopPath
-
     path = LoopPath(spec.trajectory)
     s = np.linspace(0.0, path.length, max(200, int(path.length / 0.05)), endpoint=False)
     return float(distance_to_obstacles_2d(scene, path.position(s)).min())

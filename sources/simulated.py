@@ -105,7 +105,7 @@ def twin_world_for(name: str, scene: str, twin: str | None = None) -> Any:
 
 
 def generate(spec: Any) -> Path:
-    """Simulate ``spec`` (a simulated :class:`pipeline.sequences.SequenceInfo`) unless it is cached."""
+    """Simulate ``spec`` (a simulated :class:`sources.sequence.SequenceInfo`) unless it is cached."""
     from simulator import generate_sequence
 
     if getattr(spec, "scene", None):

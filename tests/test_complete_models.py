@@ -193,10 +193,11 @@ def test_top_views_show_both_models(runs: dict[str, Any], tmp_path: Path) -> Non
 
 
 @pytest.mark.parametrize(("kind", "model"), [("rmap", "voxel"), ("coloradar", "voxel"), ("source", "voxel"),
-                                             ("simulated", "uppointr")])
-def test_real_data_completes_with_the_voxel_model_by_default(tmp_path: Path, kind: str, model: str) -> None:
-    """The sequence kind's defaults (``data/kinds.toml``) pick the completion model: the voxel U-Net on
-    real data, UpPoinTr on simulated sequences; ``--set`` still overrides them."""
+                                             ("simulated", "voxel")])
+def test_every_sequence_kind_completes_with_the_voxel_model_by_default(tmp_path: Path, kind: str, model: str
+                                                                      ) -> None:
+    """The sequence kind's defaults (``data/kinds.toml``) pick the completion model, the voxel U-Net, over the
+    stage's own default (the paper's UpPoinTr); ``--set`` still overrides them."""
     from pipeline.config import Workflow
     from pipeline.registry import load_stages
     from pipeline.runner import Runner

@@ -34,7 +34,7 @@ from stages.complete.data import F64, read_patches, voxel_downsample
 from stages.complete.voxel_grid import Band, in_band, trajectory_band
 
 if TYPE_CHECKING:
-    from pipeline.sequences import SequenceInfo
+    from sources.sequence import SequenceInfo
 
 Model = Literal["uppointr", "voxel"]
 

@@ -130,8 +130,8 @@ def write_figures(records: Sequence[dict[str, Any]], out: Path, curves: Mapping[
     """Figures across sequences beside ``out``: Fig. 6 (AUC per feature count, one panel per sequence),
     Fig. 10 right (the slam map's median and 25-75 % uncertainty over time, one curve per sequence) and, with
     ``runs_dir``, RMap's top views (``<out>_top.png``: input, UpPoinTr, voxel U-Net and lidar maps when both
-    models ran) of the figure's scenes among the records (``rmap_results.FIGURE_SEQS``), and the maps' recall by
-    distance from the path (``<out>_recall.png``)."""
+    models ran) of the figure's scenes among the records (``rmap_results.FIGURE_SEQS``) and each run's trajectories
+    (``<out>_<seq>_trajectories.png``), and the maps' recall by distance from the path (``<out>_recall.png``)."""
     seqs = list(dict.fromkeys(str(r["seq"]) for r in records))
     written = []
     if runs_dir is not None:
@@ -141,6 +141,15 @@ def write_figures(records: Sequence[dict[str, Any]], out: Path, curves: Mapping[
         if shown:
             top = plot_run_top_views(runs_dir, out.with_name(out.stem + "_top.png"), shown)
             written += [top] if top is not None else []
+    if runs_dir is not None:  # each run's trajectory figure (whole-trajectory alignment), named by its sequence
+        import shutil
+
+        for s in seqs:
+            src = runs_dir / s / "evaluate" / "trajectories.png"
+            if src.is_file() and any(r["seq"] == s and str(r["metric"]).startswith("ate_") for r in records):
+                dst = out.with_name(f"{out.stem}_{s}_trajectories.png")
+                shutil.copyfile(src, dst)
+                written.append(dst)
     from stages.evaluate.recall_distance import plot_recall_by_distance
 
     recall = plot_recall_by_distance(out.with_name(out.stem + "_recall.png"), records,

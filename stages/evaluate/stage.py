@@ -45,7 +45,7 @@ from stages.evaluate.trajectory import (
 )
 
 if TYPE_CHECKING:
-    from pipeline.sequences import SequenceInfo
+    from sources.sequence import SequenceInfo
 
 F64 = npt.NDArray[np.float64]
 #: sections that read the log's ground truth (the map metrics compare maps only)

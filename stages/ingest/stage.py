@@ -45,7 +45,7 @@ from stages.ingest.readers import Message, Source, open_source
 from stages.ingest.sink import LabelSidecar, ReorderBuffer, StreamStats, finite_mask, sort_poses
 
 if TYPE_CHECKING:
-    from pipeline.sequences import SequenceInfo
+    from sources.sequence import SequenceInfo
 
 SENSORS = ("radar", "lidar", "imu")
 

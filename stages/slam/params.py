@@ -71,10 +71,8 @@ class GraphParams(ParamGroup):
     loop_search_yaw: float = Field(20.0, gt=0, le=180, description="the loop verification's yaw search (+- deg)")
     loop_min_inliers: float = Field(0.6, gt=0, le=1, description="share of a cloud's points within 0.3 m of the "
                                     "other for a closure to be proposed")
-    loop_min_margin: float = Field(0.0, ge=0, description="nats by which a closure's match must beat the best "
-                                   "candidate that places its cloud 1 m (RMS) elsewhere (an aliased place); 0: no test")
-    loop_rounds: int = Field(1, ge=1, le=10, description="rounds of loop proposals: each after the first "
-                             "proposes from the poses the round before optimised")
+    loop_rounds: int = Field(3, ge=1, le=10, description="rounds of loop proposals: each after the first "
+                             "proposes from the poses the round before optimised (chosen on the calibration runs)")
     match_sigma: float = Field(0.15, gt=0, description="the registration's likelihood-field std (m)")
     match_temperature: float = Field(30.0, gt=0, description="divides the summed point log-likelihood in the "
                                      "registration covariance (points are not independent; chosen for a NEES near 3 "

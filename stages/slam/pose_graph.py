@@ -222,7 +222,7 @@ def loop_closures(poses: F64, clouds: list[F64], model: GraphParams,
         prior = None if odometry is None else chain_prior(odometry, j, k, model.bias_sigma0)
         m = match(ref, q, between(poses[j], poses[k]), matcher, model.loop_radius, model.loop_search_yaw,
                   prior_cov=prior)
-        if m.inliers < model.loop_min_inliers or m.margin < model.loop_min_margin:
+        if m.inliers < model.loop_min_inliers:
             continue
         out.append(Edge("loop", j, k, m.pose, world_cov_to_body(m.pose, m.cov), m.inliers))
         last_closed = k

@@ -105,37 +105,6 @@ class Match:
     score: float  # mean log-likelihood per point at the best pose
     inliers: float  # share of the query points within ``inlier_distance`` of the reference at the best pose
     n_points: int
-    #: nats by which the best candidate's posterior beats the best candidate that places the query
-    #: :data:`DISTINCT_M` or more (RMS over its points) from where the best one does: another place that explains
-    #: the query (an aliased match); inf when the search holds no such candidate
-    margin: float = float("inf")
-
-
-#: a candidate that moves the query's points this far (m, RMS) from the best one's placement is another place,
-#: not the best one's shoulder (the coarse search's cells reach 0.6 m, so nearer ones score alike)
-DISTINCT_M = 1.0
-
-
-def placement_rms(query: F64, yaws: F64, offs: F64, a: int, i: int, j: int) -> F64:
-    """RMS distance ``(n_yaw, n_x, n_y)`` between the query's points placed by each candidate (yaw ``yaws[b]``,
-    translation ``(offs[x], offs[y])`` from the search centre) and by the candidate ``(a, i, j)``:
-    ``E|(R_b - R_a) p + dt|^2 = 2 (1 - cos d) E|p|^2 + 2 dt . (R_b - R_a) mean(p) + |dt|^2``."""
-    mean, sq = query.mean(axis=0), float(np.mean(np.sum(query**2, axis=1)))
-    d = yaws - yaws[a]
-    rb = _rotate(mean[None], yaws)[:, 0] - _rotate(mean[None], yaws[a : a + 1])[0, 0]  # (R_b - R_a) mean, (n_yaw, 2)
-    dx, dy = offs[:, None] - offs[i], offs[None, :] - offs[j]
-    msd = (2.0 * (1.0 - np.cos(d))[:, None, None] * sq + 2.0 * (dx[None] * rb[:, 0, None, None]
-                                                            + dy[None] * rb[:, 1, None, None])
-           + (dx**2 + dy**2)[None])
-    return np.asarray(np.sqrt(np.maximum(msd, 0.0)))
-
-
-def distinct_margin(rank: F64, yaws: F64, offs: F64, query: F64) -> float:
-    """The best of ``rank (n_yaw, n_x, n_y)`` minus the best of the candidates that place ``query`` at least
-    :data:`DISTINCT_M` (RMS) from where the best one does; inf when there is none."""
-    a, i, j = np.unravel_index(int(np.argmax(rank)), rank.shape)
-    far = placement_rms(query, yaws, offs, int(a), int(i), int(j)) >= DISTINCT_M
-    return float(rank[a, i, j] - rank[far].max()) if far.any() else float("inf")
 
 
 def log_prior(offsets: F64, info: F64 | None) -> F64:
@@ -183,7 +152,6 @@ def match(reference: F64, query: F64, guess: npt.ArrayLike, model: MatcherModel,
     sc, offs = _scores(coarse, q, yaws, guess[:2], half)
     info = None if prior_cov is None else np.linalg.inv(prior_cov)
     rank = sc / model.temperature + log_prior(_grid_offsets(yaws, np.stack([offs, offs]), guess), info)
-    margin = distinct_margin(rank, yaws, offs, q)
     flat = np.argsort(rank.ravel())[::-1][: model.candidates]
     best_score = -np.inf
     best: tuple[F64, F64, F64, F64] | None = None
@@ -215,5 +183,4 @@ def match(reference: F64, query: F64, guess: npt.ArrayLike, model: MatcherModel,
     ok = (idx[:, 0] >= 0) & (idx[:, 0] < nx) & (idx[:, 1] >= 0) & (idx[:, 1] < ny)
     dist = np.full(len(q), np.inf)
     dist[ok] = field.distance[idx[ok, 0], idx[ok, 1]]
-    return Match(pose, cov, float(fs[a, i, j]) / len(q), float(np.mean(dist <= model.inlier_distance)), len(q),
-                 margin)
+    return Match(pose, cov, float(fs[a, i, j]) / len(q), float(np.mean(dist <= model.inlier_distance)), len(q))

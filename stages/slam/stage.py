@@ -27,7 +27,7 @@ from core.errors import UserError
 from core.stage import Stage, StageContext, StageParams
 
 if TYPE_CHECKING:
-    from pipeline.sequences import SequenceInfo
+    from sources.sequence import SequenceInfo
 
 from core import hilbert_map as hm
 from schemas.artifacts import ODOMETRY_COV_COLS, ODOMETRY_COV_IDX

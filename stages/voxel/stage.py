@@ -70,7 +70,7 @@ from stages.voxel.raycast import scan_update_keys
 from stages.voxel.voxel_map import SensorModel, VoxelMap
 
 if TYPE_CHECKING:
-    from pipeline.sequences import SequenceInfo
+    from sources.sequence import SequenceInfo
 
 F64 = npt.NDArray[np.float64]
 
