@@ -141,10 +141,11 @@ def test_nested_groups_from_toml_set_and_layers(tmp_path: Path) -> None:
         build_params(reg["slam"], [("--set", {"map.n_basis": 250})])
 
 
-def test_slam_exposes_at_most_thirty_parameters_in_groups() -> None:
+def test_slam_exposes_at_most_thirty_one_parameters_in_groups() -> None:
+    """A guard against options piling up again: what the papers fix is a constant beside its algorithm."""
     from core.stage import param_fields
     from pipeline.registry import load_stages
 
     names = list(param_fields(load_stages()["slam"].Params))
-    assert len(names) <= 30, names
+    assert len(names) <= 31, names
     assert {n.split(".")[0] for n in names if "." in n} == {"map", "beams", "graph", "grid"}
