@@ -376,3 +376,25 @@ def test_sweep_configurations_of_the_mapping_section(tmp_path: Path, headline: b
         assert auc == {"hilbert_gp"} and (out / "gt_map_grid.parquet").exists()
     else:
         assert auc == {"hilbert_gp@16", "rff@16", "grid"} and not (out / "gt_map_grid.parquet").exists()
+
+
+def test_the_configured_methods_trajectory_is_scored_once_under_its_own_name(tmp_path: Path) -> None:
+    """``trajectory.parquet`` is slam.method's trajectory: with ``trajectory_radar_graph.parquet`` beside it and
+    the manifest naming radar_graph it is not scored again (nor under another method's name); alone, it is
+    scored under the manifest's method."""
+    import json
+    from types import SimpleNamespace
+
+    from stages.evaluate.stage import Evaluation
+
+    slam = tmp_path / "slam"
+    slam.mkdir()
+    for name in ("trajectory.parquet", "trajectory_radar_graph.parquet", "trajectory_odometry.parquet"):
+        (slam / name).write_bytes(b"")
+    (slam / "manifest.json").write_text(json.dumps({"params": {"method": "radar_graph"}}))
+    ctx = SimpleNamespace(input_dirs={"slam": slam})
+    names = [m for m, _, _ in Evaluation()._trajectory_files(ctx)]  # type: ignore[arg-type]
+    assert sorted(names) == ["odometry", "radar_graph"]
+    (slam / "trajectory_radar_graph.parquet").unlink()
+    (slam / "trajectory_odometry.parquet").unlink()
+    assert [m for m, _, _ in Evaluation()._trajectory_files(ctx)] == ["radar_graph"]  # type: ignore[arg-type]

@@ -167,8 +167,13 @@ class Evaluation:
                 method = f.stem.removeprefix("trajectory_")
                 if all(m != method for m, _, _ in files):  # the odometry stage's file wins over a copy
                     files.append((method, f, "trajectory"))
-            if not any(m == "rich_slam" for m, _, _ in files) and (slam / "trajectory.parquet").exists():
-                files.append(("rich_slam", slam / "trajectory.parquet", "trajectory"))
+            # trajectory.parquet is slam.method's trajectory: counted once, under that method's name (without a
+            # manifest naming it, only when no per-method file exists)
+            method = _manifest(slam).get("params", {}).get("method")
+            listed = any(s == "trajectory" for _, _, s in files)
+            if (slam / "trajectory.parquet").exists() and (method is not None or not listed) \
+                    and not any(m == method for m, _, _ in files):
+                files.append((str(method or "slam"), slam / "trajectory.parquet", "trajectory"))
         return files
 
     def _trajectories(self, ctx: StageContext, gt: dict[str, Any]) -> None:
