@@ -179,3 +179,25 @@ def test_shipped_voxel_checkpoint_loads_with_its_validation_choices() -> None:
     assert gate["gate"] == meta.union_gate
     united = gate["overall"][f"voxel + prefiltered radar, gate {meta.union_gate:.2f}"]
     assert united["cd_l2"] < gate["overall"]["voxel"]["cd_l2"]
+
+
+def test_a_threshold_overrides_the_checkpoints_and_keeps_the_gate_below_it(tmp_path: Path) -> None:
+    """``complete.threshold``: the map is the checkpoint's decision at that threshold (a higher one keeps a subset
+    of the voxels), recorded in the stats; the union gate never exceeds it."""
+    from stages.complete.stage import STAGE, CompleteParams
+
+    _maps(tmp_path)
+    ckpt = str(_ckpt(tmp_path))
+    maps = {}
+    for name, thr in (("default", None), ("low", 0.05), ("high", 0.95)):
+        (tmp_path / name).mkdir()
+        ctx = _context(tmp_path / name, CompleteParams(model="voxel", models=["voxel"], checkpoint=ckpt,
+                                                        runtime={"tile": 16}, threshold=thr))
+        ctx.input_dirs["voxel"] = tmp_path / "voxel"
+        STAGE.run(ctx)
+        ctx.close()
+        t = read_artifact(ctx.output("completed_map.parquet"), "completed_map")
+        maps[name] = {tuple(np.round(r, 4)) for r in np.stack([t.column(c).to_numpy() for c in "xyz"], 1)}
+        if thr is not None:
+            assert ctx.stats["threshold"] == thr and ctx.stats["union_gate"] <= thr
+    assert maps["high"] <= maps["default"] <= maps["low"] and maps["high"] != maps["low"]

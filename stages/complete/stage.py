@@ -109,6 +109,8 @@ class CompleteParams(StageParams):
                       "network's input size) and of torch")
     resolution: float | None = Field(None, ge=0.01, description="downsampling voxel size (m); None = the voxel "
                                      "stage's resolution (RMap: the map resolution, 0.15 m)")
+    threshold: float | None = Field(None, gt=0, lt=1, description="voxel model: occupancy threshold of the "
+                                    "completed map; None = the checkpoint's (chosen on its validation scenes)")
     prefilter: PrefilterParams = Field(default_factory=PrefilterParams, description="the radar pre-filter")
     runtime: RuntimeParams = Field(default_factory=RuntimeParams, description="where the network runs")
 
@@ -322,6 +324,8 @@ class CompleteStage(Stage):
         )
 
         model, meta = load_voxel_checkpoint(ckpt, str(device))
+        if p.threshold is not None:  # the sequence kind's own decision threshold; the gate stays below it
+            meta = replace(meta, threshold=p.threshold, union_gate=min(meta.union_gate, p.threshold))
         res = self.resolution(ctx)
         if abs(res - meta.resolution) > 1e-9:
             raise UserError(f"{ckpt}: trained for {meta.resolution:g} m voxels, the map is at {res:g} m; train a "
