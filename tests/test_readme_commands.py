@@ -146,6 +146,8 @@ def classify(cmd: Command, commands: list[Command], shared: bool) -> Plan:
         return Plan("run", "needs nothing but the project")
     if sub == "sweep":
         return Plan("parse", "a sweep: the whole pipeline at many parameter points (hours)")
+    if sub == "train":
+        return Plan("parse", "training a completion network (hours)")
     if sub == "simulate":
         world = _opt(a, "--world")[0]
         duration = _opt(a, "--duration")
