@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -443,6 +443,31 @@ def interpolate(odometry: F64, keyframes: I64, keyframe_poses: F64) -> F64:
     return compose(c, odometry)
 
 
+class _Round(NamedTuple):
+    """One round of loop proposals, consistency, and the robust optimisation."""
+
+    poses: F64  # optimised keyframe poses
+    cov: F64
+    bias: F64
+    edges: list[Edge]  # odometry and the consistent closures (accepted or not by GNC), then the inconsistent ones
+    loops: list[Edge]  # every closure proposed
+    inconsistent: list[Edge]
+    accepted: set[tuple[int, int]]  # (i, j) of the closures kept
+
+
+def _loop_round(current: F64, odometry_poses: F64, clouds: list[F64], odo: list[Edge], model: GraphParams) -> _Round:
+    """Closures proposed around ``current`` (guesses and local clouds from it), PCM against the odometry chain
+    (``odometry_poses``), then GNC from the odometry."""
+    loops = loop_closures(current, clouds, model, odo)
+    clique = set(largest_consistent_set(pairwise_consistent(loops, odo, odometry_poses, model.bias_sigma0)))
+    inconsistent = [replace(e, accepted=False) for k, e in enumerate(loops) if k not in clique]
+    edges = [*odo, *(e for k, e in enumerate(loops) if k in clique)]
+    opt, kcov, kept, bias = optimise(odometry_poses, edges, "gnc", model.bias_sigma0, model.bias_walk)
+    edges = [*(replace(e, accepted=k) for e, k in zip(edges, kept, strict=True)), *inconsistent]
+    accepted = {(e.i, e.j) for e in edges if e.kind == "loop" and e.accepted}
+    return _Round(opt, kcov, bias, edges, loops, inconsistent, accepted)
+
+
 def optimise_graph(odometry: F64, cov: F64, t_s: F64, endpoints: Sequence[F64], model: GraphParams) -> GraphResult:
     """``radar_graph`` on arrays: ``odometry (T, 3)`` world <- base poses at the scans, ``cov (T, 3, 3)`` their
     increment covariances (row i: into scan i, body frame), ``t_s (T,)`` the scan times (s), ``endpoints`` each
@@ -461,28 +486,21 @@ def optimise_graph(odometry: F64, cov: F64, t_s: F64, endpoints: Sequence[F64], 
     clouds = keyframe_clouds(odometry, endpoints, keyframes, matcher_of(model).resolution)
     odo = odometry_edges(odometry, cov, keyframes, np.asarray(t_s, np.float64))
     poses = odometry[keyframes]
-    current: F64 = poses
-    result = None
-    for _ in range(model.loop_rounds):  # each round proposes from the poses the one before optimised
-        loops = loop_closures(current, clouds, model, odo)
-        clique = set(largest_consistent_set(pairwise_consistent(loops, odo, poses, model.bias_sigma0)))
-        inconsistent = [replace(e, accepted=False) for k, e in enumerate(loops) if k not in clique]
-        edges = [*odo, *(e for k, e in enumerate(loops) if k in clique)]
-        opt, kcov, kept, bias = optimise(poses, edges, "gnc", model.bias_sigma0, model.bias_walk)
-        edges = [*(replace(e, accepted=k) for e, k in zip(edges, kept, strict=True)), *inconsistent]
-        now = {(e.i, e.j) for e in edges if e.kind == "loop" and e.accepted}
-        before = None if result is None else {(e.i, e.j) for e in result[4] if e.kind == "loop" and e.accepted}
-        if result is not None and not now:  # a later round that keeps nothing leaves the earlier solution
+    res = _loop_round(poses, poses, clouds, odo, model)
+    for _ in range(model.loop_rounds - 1):  # each round proposes from the poses the one before optimised
+        if not res.accepted:
             break
-        result = (opt, kcov, kept, bias, edges, loops, inconsistent)
-        if now == before or not now:
+        nxt = _loop_round(res.poses, poses, clouds, odo, model)
+        if not nxt.accepted:  # a later round that keeps nothing leaves the earlier solution
             break
-        current = opt
-    assert result is not None
-    opt, kcov, kept, bias, edges, loops, inconsistent = result
-    rejected = sum(e.kind == "loop" and not e.accepted for e in edges)
+        settled = nxt.accepted == res.accepted
+        res = nxt
+        if settled:
+            break
+    rejected = sum(e.kind == "loop" and not e.accepted for e in res.edges)
     if rejected:
-        warnings.append(f"{len(inconsistent)} of {len(loops)} loop closures disagree with the largest mutually "
-                        f"consistent set and the optimiser rejected {rejected - len(inconsistent)} more; "
-                        "graph_edges.parquet lists them with accepted = false")
-    return GraphResult(interpolate(odometry, keyframes, opt), keyframes, opt, kcov, edges, bias, warnings)
+        warnings.append(f"{len(res.inconsistent)} of {len(res.loops)} loop closures disagree with the largest "
+                        f"mutually consistent set and the optimiser rejected {rejected - len(res.inconsistent)} "
+                        "more; graph_edges.parquet lists them with accepted = false")
+    return GraphResult(interpolate(odometry, keyframes, res.poses), keyframes, res.poses, res.cov, res.edges, res.bias,
+                       warnings)
