@@ -17,9 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
-from experiments.twins_tune_radar import TWIN_SCENES, WALK_SPEED, _metrics, radar_map
+from experiments.twins_tune_radar import TWIN_SCENES, _metrics, radar_map, train_scene
 
 COLUMNS = ("n_radar", "lr_ratio", "cd_l1", "cd_l2", "fscore_0.15")
 
@@ -42,7 +40,6 @@ def variants(drift_radar: dict[str, float]) -> dict[str, dict[str, float]]:
 def main(argv: list[str]) -> int:
     from simulator.simulate import Simulation
     from simulator.twin import TwinParams, twin_world, variant_params
-    from sources.mapset import read_map_set
 
     ap = argparse.ArgumentParser(prog="python -m experiments.twins_radar_effects", description=__doc__.split("\n")[0])
     ap.add_argument("scenes", nargs="+")
@@ -58,13 +55,10 @@ def main(argv: list[str]) -> int:
     root = Path(os.environ.get("RMAP_ROOT", ""))
     lines = ["| scene | radar | " + " | ".join(COLUMNS) + " | seconds |", "|" + "---|" * (len(COLUMNS) + 3)]
     for scene in a.scenes:
-        ms = read_map_set(root, scene)
-        if ms.split != "train":
-            print(f"error: {scene}: split '{ms.split}', not a train scene of RMap's split", file=sys.stderr)
+        loaded = train_scene(root, scene, a.max_seconds)
+        if loaded is None:
             return 2
-        length = float(np.linalg.norm(np.diff(ms.trajectory[:, :2], axis=0), axis=1).sum())
-        full = length / WALK_SPEED
-        dur = min(full, a.max_seconds) if a.max_seconds > 0 else full
+        ms, full, dur = loaded
         real = _metrics(ms.radar, ms.lidar_filtered)
         lines.append(f"| {scene} | real radar (authors) | " + " | ".join(
             f"{real[c]:.0f}" if c == "n_radar" else f"{real[c]:.3f}" for c in COLUMNS) + " | |")

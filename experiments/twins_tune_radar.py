@@ -120,6 +120,19 @@ def _metrics(radar: np.ndarray, lidar_f: np.ndarray) -> dict[str, float]:
     return {"n_radar": float(len(radar)), "lr_ratio": lr_ratio(lidar_f, radar), **m}
 
 
+def train_scene(root: Path, scene: str, max_seconds: float) -> tuple[Any, float, float] | None:
+    """A train scene's map set, the seconds its whole path takes at :data:`WALK_SPEED` and the seconds simulated
+    (``max_seconds`` > 0 cuts it); None, with the error on stderr, for a scene outside RMap's train split."""
+    from sources.mapset import read_map_set
+
+    ms = read_map_set(root, scene)
+    if ms.split != "train":
+        print(f"error: {scene}: split '{ms.split}', not a train scene of RMap's split", file=sys.stderr)
+        return None
+    full = float(np.linalg.norm(np.diff(ms.trajectory[:, :2], axis=0), axis=1).sum()) / WALK_SPEED
+    return ms, full, min(full, max_seconds) if max_seconds > 0 else full
+
+
 def _pick_main(paths: list[Path]) -> int:
     """Print the best trial among those run on every scene of the CSVs."""
     rows = read_trials(paths)
@@ -134,7 +147,6 @@ def _pick_main(paths: list[Path]) -> int:
 def main(argv: list[str]) -> int:
     from simulator.simulate import Simulation
     from simulator.twin import TwinParams, twin_world
-    from sources.mapset import read_map_set
 
     ap = argparse.ArgumentParser(prog="python -m experiments.twins_tune_radar", description=__doc__.split("\n")[0])
     ap.add_argument("scenes", nargs="*")
@@ -166,13 +178,10 @@ def main(argv: list[str]) -> int:
                         *(f"sim_{m}" for m in METRICS), *(f"real_{m}" for m in METRICS)])
         scenes: list[tuple[str, Any, float, float, dict[str, float]]] = []
         for scene in a.scenes:
-            ms = read_map_set(root, scene)
-            if ms.split != "train":
-                print(f"error: {scene}: split '{ms.split}', not a train scene of RMap's split", file=sys.stderr)
+            loaded = train_scene(root, scene, a.max_seconds)
+            if loaded is None:
                 return 2
-            length = float(np.linalg.norm(np.diff(ms.trajectory[:, :2], axis=0), axis=1).sum())
-            full = length / WALK_SPEED
-            dur = min(full, a.max_seconds) if a.max_seconds > 0 else full
+            ms, full, dur = loaded
             scenes.append((scene, ms, full, dur, _metrics(ms.radar, ms.lidar_filtered)))
         for t in run:
             for scene, ms, full, dur, real in scenes:
