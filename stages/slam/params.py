@@ -59,8 +59,9 @@ class GraphParams(ParamGroup):
                              "(longer than the filters' beams: more structure)")
     keyframe_distance: float = Field(1.0, gt=0, description="a keyframe every this many metres of odometry travel")
     keyframe_angle: float = Field(15.0, gt=0, description="or every this many degrees turned")
-    local_keyframes: int = Field(10, ge=1, le=1000, description="keyframes in the local cloud of each end of a loop "
-                                 "closure")
+    local_keyframes: int = Field(10, ge=1, le=1000, description="keyframes in the query cloud of a loop closure; "
+                                 "the reference is the earlier pass within local_keyframes / 2 * "
+                                 "keyframe_distance + max_range of the candidate")
     bias_sigma0: float = Field(0.01, gt=0, le=1, description="prior std of the yaw-rate bias the odometry leaves, "
                                "rad/s (each keyframe carries one)")
     bias_walk: float = Field(1e-4, gt=0, le=1, description="random walk of that bias, rad/s/sqrt(s)")
@@ -69,8 +70,8 @@ class GraphParams(ParamGroup):
     loop_min_travel: float = Field(15.0, gt=0, description="path length between the two keyframes of a loop "
                                    "candidate (m)")
     loop_search_yaw: float = Field(20.0, gt=0, le=180, description="the loop verification's yaw search (+- deg)")
-    loop_min_inliers: float = Field(0.6, gt=0, le=1, description="share of a cloud's points within 0.3 m of the "
-                                    "other for a closure to be proposed")
+    loop_min_inliers: float = Field(0.7, gt=0, le=1, description="share of the query's points within 0.3 m of the "
+                                    "reference for a closure to be proposed (chosen on the calibration runs)")
     loop_rounds: int = Field(3, ge=1, le=10, description="rounds of loop proposals: each after the first "
                              "proposes from the poses the round before optimised (chosen on the calibration runs)")
     match_sigma: float = Field(0.15, gt=0, description="the registration's likelihood-field std (m)")

@@ -4,9 +4,10 @@ The odometry (EKF-RIO) gives keyframes by distance and angle travelled and a rel
 consecutive keyframes with its own increment covariance, propagated along the scans. Each keyframe holds the
 radar endpoints of the scans nearest to it, accumulated along the odometry into the keyframe's frame (single TI
 scans hold 30-100 points). Loop closures are proposed between keyframes that are close in the odometry's
-estimate but far apart along the path, verified by registration of their local clouds with a wide yaw search
-(:mod:`registration`, a correlative scan matcher whose search gives the covariance), and optimised with
-graduated non-convexity (Yang et al., RA-L 2020, the truncated quadratic) on the closures, which drops a wrong one.
+estimate but far apart along the path, verified by registering the later one's local cloud against the earlier
+pass with a wide yaw search (:mod:`registration`, a correlative scan matcher whose search gives the
+covariance), and optimised with graduated non-convexity (Yang et al., RA-L 2020, the truncated quadratic) on
+the closures, which drops a wrong one.
 The odometry's heading drifts with the gyro bias its filter did not remove: each keyframe carries a yaw-rate bias
 (a random walk, GTSAM variables beside the poses) that corrects the odometry factor's yaw over its interval, so a
 closure corrects a drift that grows with time instead of bending the chain where the closure pulls. Every scan's
@@ -158,7 +159,7 @@ def odometry_edges(odometry: F64, cov: F64, keyframes: I64, t_s: F64) -> list[Ed
 # -- front end and loop closures -------------------------------------------------------------------------------------
 
 
-def local_cloud(poses: F64, clouds: list[F64], centre: int, members: range) -> F64:
+def local_cloud(poses: F64, clouds: list[F64], centre: int, members: Sequence[int]) -> F64:
     """The clouds of keyframes ``members`` placed by ``poses`` and expressed in keyframe ``centre``'s frame."""
     parts = [transform(between(poses[centre], poses[i]), clouds[i]) for i in members if len(clouds[i])]
     return np.concatenate(parts) if parts else np.zeros((0, 2))
@@ -190,18 +191,33 @@ def chain_prior(odometry: Sequence[Edge], j: int, k: int, bias_sigma0: float) ->
     return 0.5 * (out + out.T)
 
 
+def pass_segment(poses: F64, s: F64, j: int, travelled_by: float, reach: float) -> range:
+    """The keyframes of the pass through keyframe ``j``: the contiguous run around it along the path whose
+    positions lie within ``reach`` (m) of ``j``'s and whose path length ``s`` is at most ``travelled_by``."""
+    ok = (s <= travelled_by) & (np.hypot(*(poses[:, :2] - poses[j, :2]).T) <= reach)
+    a, b = j, j
+    while a > 0 and ok[a - 1]:
+        a -= 1
+    while b + 1 < len(poses) and ok[b + 1]:
+        b += 1
+    return range(a, b + 1)
+
+
 def loop_closures(poses: F64, clouds: list[F64], model: GraphParams,
                   odometry: Sequence[Edge] | None = None) -> list[Edge]:
     """Closures proposed and verified on the odometry's keyframe poses: for every keyframe (at most one closure
     per ``loop_every`` keyframes), the nearest earlier keyframe within ``loop_radius`` that lies
     ``loop_min_travel`` or more back along the path; the local cloud around the keyframe (``local_keyframes``
-    centred on it) is matched against the one around the candidate, with a wide yaw search, the candidates ranked
+    centred on it) is matched against the candidate's pass (:func:`pass_segment`: every keyframe of that pass
+    within ``local_keyframes / 2 * keyframe_distance + max_range`` of it, so that the reference holds what the
+    query can see, also when it comes back the other way), with a wide yaw search, the candidates ranked
     by their posterior under the odometry chain's prior between the two (:func:`chain_prior`; ``odometry``: the
     consecutive keyframes' factors, without them by the likelihood alone). One whose inlier share reaches
     ``loop_min_inliers`` is proposed; the optimiser may still reject it."""
     s = travelled(poses)
     out: list[Edge] = []
     half = max(1, model.local_keyframes // 2)
+    reach = half * model.keyframe_distance + model.max_range
     matcher = matcher_of(model)
     last_closed = -(10**9)
     K = len(poses)
@@ -215,7 +231,7 @@ def loop_closures(poses: F64, clouds: list[F64], model: GraphParams,
         if d.min() > model.loop_radius:
             continue
         j = int(far[np.argmin(d)])
-        ref = local_cloud(poses, clouds, j, range(max(0, j - half), min(K, j + half + 1)))
+        ref = local_cloud(poses, clouds, j, pass_segment(poses, s, j, s[k] - model.loop_min_travel, reach))
         q = local_cloud(poses, clouds, k, range(max(0, k - half), min(K, k + half + 1)))
         if len(q) < MIN_LOOP_POINTS or len(ref) < MIN_LOOP_POINTS:
             continue
