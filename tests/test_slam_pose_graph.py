@@ -228,7 +228,6 @@ def _out_and_back() -> tuple[np.ndarray, list[np.ndarray]]:
     return poses, scans
 
 
-
 def test_opposite_direction_revisits_match_against_the_earlier_pass() -> None:
     """Coming back the other way, a forward-looking sensor's window of keyframes sees mostly what lies ahead:
     two windows share a few metres of wall, and the likelihood field pays the query for sliding along the
